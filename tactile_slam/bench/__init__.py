@@ -1,0 +1,1 @@
+"""Benchmarks: each writes JSON with median timings and the machine."""

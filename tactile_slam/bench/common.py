@@ -1,0 +1,70 @@
+"""Shared benchmark helpers: timing statistics, machine description, JSON output."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+
+def machine_info() -> dict[str, Any]:
+    """What the numbers were measured on."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    info = {
+        "cpu": cpu,
+        "cores": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "platform": platform.platform(),
+        "cuda": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
+    }
+    return info
+
+
+def timing_stats(samples_s: list[float] | np.ndarray) -> dict[str, float]:
+    """Median, IQR, p95, mean in milliseconds from samples in seconds."""
+    a = np.asarray(samples_s, dtype=np.float64) * 1000.0
+    q25, q50, q75, q95 = np.percentile(a, [25, 50, 75, 95])
+    return {"median_ms": float(q50), "iqr_ms": float(q75 - q25), "p95_ms": float(q95),
+            "mean_ms": float(a.mean()), "n": int(a.size)}
+
+
+def time_fn(fn: Callable[[], Any], repeats: int, warmup: int = 3, sync_cuda: bool = False) -> list[float]:
+    """Wall-clock samples (s) of ``fn()`` after ``warmup`` calls."""
+    for _ in range(warmup):
+        fn()
+    out = []
+    for _ in range(repeats):
+        if sync_cuda:
+            torch.cuda.synchronize()
+        t0 = time.perf_counter()
+        fn()
+        if sync_cuda:
+            torch.cuda.synchronize()
+        out.append(time.perf_counter() - t0)
+    return out
+
+
+def write_json(path: str | Path, name: str, results: dict[str, Any]) -> Path:
+    """Write ``{"benchmark", "machine", "date", "results"}`` to ``path``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    doc = {"benchmark": name, "date": time.strftime("%Y-%m-%dT%H:%M:%S"), "machine": machine_info(),
+           "results": results}
+    path.write_text(json.dumps(doc, indent=2))
+    return path

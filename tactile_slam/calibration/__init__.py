@@ -1,0 +1,1 @@
+"""Calibration: press labelling, dataset, MLP training and evaluation, model files."""

@@ -1,0 +1,175 @@
+"""Calibration model: per-pixel MLP from colour and position to gradient angles.
+
+Two file formats load here (method.md section 2.4):
+
+* the GelSight SDK's ``nnmodel.pth``: a bare ``state_dict`` with layers ``fc1..fc4``;
+* tactile-slam's own ``.pt`` files: ``{"format": "tactile-slam-calibration",
+  "hidden": [...], "state_dict": ..., "meta": {...}}``.
+
+Both are loaded weights-only with a strict key check.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import torch
+from torch import nn
+
+from tactile_slam.geometry.morphology import dilate
+
+FORMAT_TAG = "tactile-slam-calibration"
+
+
+class CalibrationModelError(ValueError):
+    """A calibration model file is missing or malformed."""
+
+
+class GradientMLP(nn.Module):
+    """MLP ``5 -> hidden... -> 2`` with ReLU; layers are named ``fc1..fc{n+1}`` so the
+    default ``(32, 32, 32)`` is state-dict compatible with the SDK's model.
+
+    Input per pixel: ``[B/255, G/255, R/255, x/W, y/H]``; output: gradient angles
+    ``(theta_x, theta_y)`` in radians (the slope is their tangent).
+    """
+
+    def __init__(self, hidden: tuple[int, ...] = (32, 32, 32)):
+        super().__init__()
+        self.hidden = tuple(int(h) for h in hidden)
+        sizes = (5, *self.hidden, 2)
+        for i in range(len(sizes) - 1):
+            self.add_module(f"fc{i + 1}", nn.Linear(sizes[i], sizes[i + 1]))
+        self.n_layers = len(sizes) - 1
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """``(N, 5)`` -> ``(N, 2)`` angles in rad."""
+        for i in range(1, self.n_layers):
+            x = torch.relu(getattr(self, f"fc{i}")(x))
+        return getattr(self, f"fc{self.n_layers}")(x)
+
+
+def pixel_features(bgr: torch.Tensor) -> torch.Tensor:
+    """Per-pixel model input from raw BGR images.
+
+    Args:
+        bgr: ``(B, H, W, 3)`` uint8 or float in ``[0, 255]``.
+
+    Returns:
+        ``(B, H, W, 5)`` float32: ``B/255, G/255, R/255, x/W, y/H``.
+    """
+    b, h, w, _ = bgr.shape
+    col = bgr.float() / 255.0
+    xs = (torch.arange(w, device=bgr.device, dtype=torch.float32) / w).expand(b, h, w)
+    ys = (torch.arange(h, device=bgr.device, dtype=torch.float32) / h)[:, None].expand(b, h, w)
+    return torch.cat([col, xs[..., None], ys[..., None]], dim=-1)
+
+
+def save_model(path: str | Path, model: GradientMLP, meta: dict[str, Any] | None = None) -> None:
+    """Write a tactile-slam model file (state dict + hidden sizes + metadata)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    torch.save(
+        {
+            "format": FORMAT_TAG,
+            "hidden": list(model.hidden),
+            "state_dict": {k: v.detach().cpu().float() for k, v in model.state_dict().items()},
+            "meta": meta or {},
+        },
+        path,
+    )
+
+
+def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[GradientMLP, dict[str, Any]]:
+    """Load a model in either format onto ``device`` in eval mode.
+
+    Returns:
+        ``(model, meta)``; ``meta`` is empty for SDK files.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationModelError(f"calibration model not found: {path}")
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for corrupt files
+        raise CalibrationModelError(f"cannot read calibration model {path}: {exc}") from exc
+    if isinstance(obj, dict) and obj.get("format") == FORMAT_TAG:
+        hidden = tuple(obj["hidden"])
+        state, meta = obj["state_dict"], dict(obj.get("meta", {}))
+    elif isinstance(obj, dict) and all(isinstance(v, torch.Tensor) for v in obj.values()):
+        n = len([k for k in obj if k.endswith(".weight")])
+        if n < 2 or "fc1.weight" not in obj:
+            raise CalibrationModelError(f"{path} is not an MLP state dict (keys {sorted(obj)[:6]})")
+        hidden = tuple(obj[f"fc{i}.weight"].shape[0] for i in range(1, n))
+        state, meta = obj, {}
+    else:
+        raise CalibrationModelError(f"{path} is neither a tactile-slam model nor an SDK state dict")
+    model = GradientMLP(hidden)
+    try:
+        model.load_state_dict(state, strict=True)
+    except RuntimeError as exc:
+        raise CalibrationModelError(f"{path}: state dict does not match the MLP: {exc}") from exc
+    return model.to(device).eval(), meta
+
+
+class GradientDecoder:
+    """Colour image -> surface gradients with the background's gradients subtracted.
+
+    ``G = tan(f(img)) - tan(f(bg))``. Pixels whose colour stays within
+    ``skip_color_dist`` of the background (after a small dilation) are not evaluated:
+    their image equals the background there, so their gradient is zero.
+
+    Args:
+        model: the calibration MLP.
+        background: ``(H, W, 3)`` float BGR background (mean of contact-free frames).
+        skip_color_dist: colour distance under which a pixel is skipped; ``0``
+            evaluates every pixel.
+        max_angle: angles are clamped to ``[-max_angle, max_angle]`` rad before tan.
+    """
+
+    def __init__(
+        self,
+        model: GradientMLP,
+        background: torch.Tensor,
+        skip_color_dist: float = 4.0,
+        max_angle: float = 1.4,
+    ):
+        if background.ndim != 3 or background.shape[-1] != 3:
+            raise ValueError(f"background must be (H, W, 3), got {tuple(background.shape)}")
+        self.model = model
+        self.device = next(model.parameters()).device
+        self.background = background.to(self.device, torch.float32)
+        self.skip_color_dist = float(skip_color_dist)
+        self.max_angle = float(max_angle)
+        with torch.no_grad():
+            feats = pixel_features(self.background[None])
+            self.bg_slopes = self._slopes(feats.reshape(-1, 5)).reshape(*self.background.shape[:2], 2)
+
+    def _slopes(self, feats: torch.Tensor) -> torch.Tensor:
+        return torch.tan(self.model(feats).clamp(-self.max_angle, self.max_angle))
+
+    @torch.no_grad()
+    def __call__(self, bgr: torch.Tensor, changed: torch.Tensor | None = None) -> torch.Tensor:
+        """``(B, H, W, 3)`` BGR -> ``(B, H, W, 2)`` gradients ``(dh/dx, dh/dy)``.
+
+        ``changed`` (``(B, H, W)`` bool) restricts evaluation to those pixels; by
+        default it is derived from the colour distance to the background.
+        """
+        if bgr.ndim != 4 or bgr.shape[1:] != self.background.shape:
+            raise ValueError(
+                f"image batch must be (B, {', '.join(map(str, self.background.shape))}), "
+                f"got {tuple(bgr.shape)}"
+            )
+        bgr = bgr.to(self.device)
+        feats = pixel_features(bgr)
+        if changed is None and self.skip_color_dist > 0:
+            dist = torch.linalg.vector_norm(bgr.float() - self.background, dim=-1)
+            changed = dilate(dist > self.skip_color_dist, 5)
+        if changed is None:
+            out = self._slopes(feats.reshape(-1, 5)).reshape(*bgr.shape[:3], 2)
+            return out - self.bg_slopes
+        out = torch.zeros(*bgr.shape[:3], 2, device=self.device, dtype=torch.float32)
+        if changed.any():
+            bg = self.bg_slopes.expand(bgr.shape[0], -1, -1, -1)
+            out[changed] = self._slopes(feats[changed]) - bg[changed]
+        return out

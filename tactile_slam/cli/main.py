@@ -1,0 +1,35 @@
+"""``tactile-slam`` entry point. Each sub-command lives in its own module under
+``tactile_slam.cli`` and exposes ``register(subparsers)``; it sets ``func`` on its
+parser, which receives the parsed arguments and returns an exit code."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+COMMAND_MODULES = (
+    "tactile_slam.cli.bench",
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="tactile-slam", description="Tactile SLAM for GelSight-type sensors.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (ValueError, FileNotFoundError, RuntimeError) as exc:
+        # Errors carry a message that names the problem; show it without a traceback.
+        print(f"tactile-slam {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,323 @@
+"""Typed configuration objects that read YAML.
+
+Two layouts are accepted:
+
+* the project's own layout: top-level sections named like the dataclasses below
+  (``sensor``, ``contact``, ``curvature``, ``normalflow``, ``tracking``, ``loop``,
+  ``posegraph``, ``recon``); any section or key may be omitted;
+* the public GelSLAM ``config.yaml`` layout (``device_config``, ``contact_mask_config``,
+  ``gelslam_config``), including its misnamed ``ppmm`` key, which there as here means
+  millimetres per pixel.
+
+Pixel-valued constants that depend on the sensor (erosion sizes, areas in pixels) are
+derived from :class:`SensorConfig` by properties rather than stored, so a DIGIT config
+gets the right values without extra keys.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+PACKAGE_ROOT = Path(__file__).resolve().parent
+REPO_ROOT = PACKAGE_ROOT.parent
+MODELS_DIR = REPO_ROOT / "models"
+
+
+class ConfigError(ValueError):
+    """A configuration file or value is invalid."""
+
+
+@dataclass
+class SensorConfig:
+    """Sensor geometry and timing.
+
+    ``mm_per_px`` is millimetres per pixel (GelSLAM's ``ppmm`` means the same).
+    ``model_path`` is the calibration model, absolute or relative to the config file;
+    ``None`` means the packaged default for this sensor, if any.
+    """
+
+    name: str = "GelSight Mini"
+    mm_per_px: float = 0.0634
+    width: int = 320
+    height: int = 240
+    raw_width: int = 3280
+    raw_height: int = 2464
+    fps: float = 25.0
+    model_path: str | None = None
+    background_frames: int = 10
+    max_indentation_mm: float = 2.0
+
+    @property
+    def m_per_px(self) -> float:
+        return self.mm_per_px / 1000.0
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """(H, W) of the working image."""
+        return (self.height, self.width)
+
+    def px_from_mm2(self, area_mm2: float) -> float:
+        return area_mm2 / (self.mm_per_px**2)
+
+    def resolved_model_path(self) -> Path | None:
+        if self.model_path is None:
+            default = MODELS_DIR / f"{self.name.lower().replace(' ', '_')}.pt"
+            return default if default.exists() else None
+        return Path(self.model_path)
+
+
+@dataclass
+class ContactConfig:
+    """Contact-mask rule (method.md section 3.2) and the in-contact test (3.3).
+
+    ``final_erode`` of ``None`` derives the final erosion size as max(H // 48, 1).
+    ``min_contact_mm2`` is the in-contact area: 500 px on a GelSight Mini.
+    """
+
+    color_dist_threshold: float = 15.0
+    dilate: int = 7
+    erode: int = 15
+    height_threshold_mm: float = 0.2
+    height_percentile: float = 85.0
+    final_erode: int | None = None
+    min_contact_mm2: float = 500 * 0.0634**2
+    # Pixels whose colour differs from the background by less than this skip the
+    # calibration MLP (their gradient is exactly the background's, i.e. zero).
+    mlp_skip_color_dist: float = 4.0
+
+
+@dataclass
+class CurvatureConfig:
+    """Curvature blur and clip (method.md section 3.3)."""
+
+    blur_ksize: int = 5
+    blur_sigma: float = 1.1
+    clip: float = 0.7
+
+
+@dataclass
+class NormalFlowConfig:
+    """NormalFlow registration parameters (method.md section 4)."""
+
+    n_samples: int = 3000
+    max_iters: int = 50
+    min_iters: int = 7
+    rot_tol: float = 1e-4
+    trans_tol_m: float = 1e-5
+    min_shared: int = 10
+    ccs_threshold: float = 0.85
+    scr_threshold: float = 0.3
+
+
+@dataclass
+class TrackingConfig:
+    """Tracker thresholds (method.md section 5)."""
+
+    ccs_threshold: float = 0.85
+    scr_threshold: float = 0.3
+    flush_session_tail: bool = True
+    init: str = "constant_position"
+
+
+@dataclass
+class LoopConfig:
+    """Loop closure and coverage set (method.md section 6)."""
+
+    ccs_threshold: float = 0.7
+    scr_threshold: float = 0.3
+    min_sift_inliers: int = 8
+    coverage_overlap_mm2: float = 50 * 0.0634**2
+
+
+@dataclass
+class PoseGraphConfig:
+    """Pose-graph noise and solver (method.md section 7)."""
+
+    sigma_rot_rad: float = 0.01
+    sigma_trans_m: float = 1e-4
+    max_iters: int = 100
+
+
+@dataclass
+class ReconConfig:
+    """Reconstruction (method.md section 8)."""
+
+    fusion_gate_mm: float = 3.0
+    poisson: bool = True
+
+
+@dataclass
+class Config:
+    """Everything tactile-slam needs, one section per concept."""
+
+    sensor: SensorConfig = field(default_factory=SensorConfig)
+    contact: ContactConfig = field(default_factory=ContactConfig)
+    curvature: CurvatureConfig = field(default_factory=CurvatureConfig)
+    normalflow: NormalFlowConfig = field(default_factory=NormalFlowConfig)
+    tracking: TrackingConfig = field(default_factory=TrackingConfig)
+    loop: LoopConfig = field(default_factory=LoopConfig)
+    posegraph: PoseGraphConfig = field(default_factory=PoseGraphConfig)
+    recon: ReconConfig = field(default_factory=ReconConfig)
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def min_contact_px(self) -> float:
+        return self.sensor.px_from_mm2(self.contact.min_contact_mm2)
+
+    @property
+    def final_erode_px(self) -> int:
+        if self.contact.final_erode is not None:
+            return self.contact.final_erode
+        return max(self.sensor.height // 48, 1)
+
+    @property
+    def height_threshold_px(self) -> float:
+        return self.contact.height_threshold_mm / self.sensor.mm_per_px
+
+    # ------------------------------------------------------------------ I/O
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def save(self, path: str | Path) -> None:
+        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any], base_dir: Path | None = None) -> "Config":
+        if not isinstance(data, dict):
+            raise ConfigError(f"config must be a mapping, got {type(data).__name__}")
+        if any(k in data for k in ("device_config", "contact_mask_config", "gelslam_config")):
+            data = _from_gelslam_layout(data)
+        cfg = cls()
+        for name, section in data.items():
+            if not hasattr(cfg, name) or not dataclasses.is_dataclass(getattr(cfg, name)):
+                raise ConfigError(f"unknown config section {name!r}")
+            if section is None:
+                continue
+            setattr(cfg, name, _update(getattr(cfg, name), section, name))
+        if base_dir is not None and cfg.sensor.model_path is not None:
+            p = Path(cfg.sensor.model_path)
+            if not p.is_absolute():
+                cfg.sensor.model_path = str((base_dir / p).resolve())
+        cfg.validate()
+        return cfg
+
+    @classmethod
+    def from_yaml(cls, path: str | Path) -> "Config":
+        path = Path(path)
+        if not path.is_file():
+            raise ConfigError(f"config file not found: {path}")
+        try:
+            data = yaml.safe_load(path.read_text()) or {}
+        except yaml.YAMLError as exc:
+            raise ConfigError(f"config file {path} is not valid YAML: {exc}") from exc
+        return cls.from_dict(data, base_dir=path.parent)
+
+    def validate(self) -> None:
+        s = self.sensor
+        if not s.mm_per_px > 0:
+            raise ConfigError(f"sensor.mm_per_px must be > 0, got {s.mm_per_px}")
+        if s.width <= 0 or s.height <= 0:
+            raise ConfigError(f"sensor size must be positive, got {s.width}x{s.height}")
+        if s.fps <= 0:
+            raise ConfigError(f"sensor.fps must be > 0, got {s.fps}")
+        if s.background_frames < 1:
+            raise ConfigError("sensor.background_frames must be >= 1")
+        if self.curvature.blur_ksize % 2 != 1:
+            raise ConfigError("curvature.blur_ksize must be odd")
+
+
+def _update(obj: Any, values: dict[str, Any], section: str) -> Any:
+    if not isinstance(values, dict):
+        raise ConfigError(f"config section {section!r} must be a mapping")
+    known = {f.name: f for f in dataclasses.fields(obj)}
+    kwargs = {}
+    for key, value in values.items():
+        if key not in known:
+            raise ConfigError(f"unknown key {section}.{key}")
+        kwargs[key] = value
+    return dataclasses.replace(obj, **kwargs)
+
+
+def _from_gelslam_layout(data: dict[str, Any]) -> dict[str, Any]:
+    """Translate the public GelSLAM config.yaml layout into this project's sections."""
+    out: dict[str, dict[str, Any]] = {"sensor": {}, "contact": {}, "tracking": {}, "loop": {}}
+    dev = data.get("device_config") or {}
+    mapping = {
+        "device_name": "name",
+        "ppmm": "mm_per_px",  # misnamed upstream: it is millimetres per pixel
+        "imgh": "height",
+        "imgw": "width",
+        "raw_imgh": "raw_height",
+        "raw_imgw": "raw_width",
+        "framerate": "fps",
+        "calibration_model_path": "model_path",
+    }
+    for k, v in dev.items():
+        if k not in mapping:
+            raise ConfigError(f"unknown key device_config.{k}")
+        out["sensor"][mapping[k]] = v
+    mm_per_px = float(out["sensor"].get("mm_per_px", SensorConfig.mm_per_px))
+    cm = data.get("contact_mask_config") or {}
+    for k, v in cm.items():
+        if k == "color_dist_threshold":
+            out["contact"]["color_dist_threshold"] = v
+        elif k == "height_threshold":
+            out["contact"]["height_threshold_mm"] = v
+        else:
+            raise ConfigError(f"unknown key contact_mask_config.{k}")
+    gs = data.get("gelslam_config") or {}
+    track = gs.get("track_config") or {}
+    for k, v in track.items():
+        if k == "contact_threshold":  # pixels upstream; stored as an area here
+            out["contact"]["min_contact_mm2"] = float(v) * mm_per_px**2
+        elif k in ("scr_threshold", "ccs_threshold"):
+            out["tracking"][k] = v
+        else:
+            raise ConfigError(f"unknown key gelslam_config.track_config.{k}")
+    pg = gs.get("pose_graph_config") or {}
+    for k, v in pg.items():
+        if k == "coverage_graph_overlap_threshold":
+            out["loop"]["coverage_overlap_mm2"] = float(v) * mm_per_px**2
+        elif k in ("scr_threshold", "ccs_threshold", "min_sift_inliers"):
+            out["loop"][k] = v
+        else:
+            raise ConfigError(f"unknown key gelslam_config.pose_graph_config.{k}")
+    for k in data:
+        if k not in ("device_config", "contact_mask_config", "gelslam_config"):
+            raise ConfigError(f"unknown config section {k!r} in GelSLAM layout")
+    return out
+
+
+def gelsight_mini() -> Config:
+    """Preset: GelSight Mini, 0.0634 mm/px, 320x240 at 25 fps, raw 3280x2464."""
+    return Config()
+
+
+def digit() -> Config:
+    """Preset: DIGIT, 0.0405 mm/px, raw 640x480 at 60 fps, worked at 320x240.
+
+    The 0.0405 mm/px scale is the public code's value for the working image.
+    """
+    cfg = Config()
+    cfg.sensor = SensorConfig(
+        name="DIGIT", mm_per_px=0.0405, width=320, height=240, raw_width=640,
+        raw_height=480, fps=60.0,
+    )
+    return cfg
+
+
+PRESETS = {"gelsight_mini": gelsight_mini, "digit": digit}
+
+
+def load_config(source: str | Path | None = None) -> Config:
+    """A preset name (``gelsight_mini``, ``digit``), a YAML path, or ``None`` (Mini)."""
+    if source is None:
+        return gelsight_mini()
+    if str(source) in PRESETS:
+        return PRESETS[str(source)]()
+    return Config.from_yaml(source)

@@ -1,0 +1,1 @@
+"""Evaluation metrics: tracking errors, loop precision/recall, reconstruction."""

@@ -1,0 +1,1 @@
+"""Batched per-frame geometry: height, contact, normals, curvature, the Frame type."""

@@ -1,0 +1,1 @@
+"""Sensor input: recorded scans, videos, image folders, gradient-map sequences, live cameras."""

@@ -1,0 +1,1 @@
+"""Loop closure: coverage set, curvature features, candidate retrieval, verification."""

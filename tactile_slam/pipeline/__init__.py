@@ -1,0 +1,1 @@
+"""Pipelines: own the data loop, progress, timing and the output folder."""

@@ -1,0 +1,1 @@
+"""Reconstruction: keyframe surface fusion and watertight meshing."""

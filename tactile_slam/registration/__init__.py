@@ -1,0 +1,1 @@
+"""Pairwise registration: NormalFlow and the ICP / FPFH baselines."""

@@ -1,0 +1,1 @@
+"""Simulator: procedural objects, gel renderer, motions and episodes with ground truth."""

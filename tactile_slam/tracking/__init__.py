@@ -1,0 +1,1 @@
+"""Tracking: lazy keyframes and sessions on top of NormalFlow."""
