@@ -1,0 +1,32 @@
+"""Shared fixtures: devices and dtypes to parametrise over, the shared data folder."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import torch
+
+REPO = Path(__file__).resolve().parents[1]
+SHARED = REPO.parent / "shared"
+GELSIGHT_MINI = SHARED / "data" / "gelsight_mini"
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(params=DEVICES)
+def device(request) -> torch.device:
+    return torch.device(request.param)
+
+
+@pytest.fixture(params=[torch.float32, torch.float64], ids=["f32", "f64"])
+def dtype(request) -> torch.dtype:
+    return request.param
+
+
+@pytest.fixture(scope="session")
+def mini_data() -> Path:
+    """The real GelSight Mini data in ../shared (skips when absent)."""
+    if not GELSIGHT_MINI.is_dir():
+        pytest.skip("../shared/data/gelsight_mini is not present")
+    return GELSIGHT_MINI
