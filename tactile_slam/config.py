@@ -88,7 +88,7 @@ class ContactConfig:
     min_contact_mm2: float = 500 * 0.0634**2
     # Pixels whose colour differs from the background by less than this skip the
     # calibration MLP (their gradient is exactly the background's, i.e. zero).
-    mlp_skip_color_dist: float = 4.0
+    mlp_skip_color_dist: float = 8.0
 
 
 @dataclass
@@ -102,9 +102,19 @@ class CurvatureConfig:
 
 @dataclass
 class NormalFlowConfig:
-    """NormalFlow registration parameters (method.md section 4)."""
+    """NormalFlow registration parameters (method.md section 4).
 
-    n_samples: int = 3000
+    ``n_samples`` of ``None`` uses every contact pixel. ``selection``: ``"topk"``
+    (exact top-k of |L| over the contact, default), ``"threshold"`` (the public
+    GelSLAM rule) or ``"random"`` (old NormalFlow: random contact pixels, seeded by
+    ``seed``). ``check_scores`` False skips the CCS/SCR test (old NormalFlow).
+    ``jacobian``: ``"analytic"`` or ``"autograd"`` (torch.func); both agree.
+    ``lm_damping`` is a Marquardt factor on the Jacobi-scaled normal equations;
+    ``degenerate_eig`` is the smallest eigenvalue of those (unit-diagonal) equations
+    below which a pair is reported degenerate (failed).
+    """
+
+    n_samples: int | None = 3000
     max_iters: int = 50
     min_iters: int = 7
     rot_tol: float = 1e-4
@@ -112,6 +122,12 @@ class NormalFlowConfig:
     min_shared: int = 10
     ccs_threshold: float = 0.85
     scr_threshold: float = 0.3
+    selection: str = "topk"
+    check_scores: bool = True
+    jacobian: str = "analytic"
+    lm_damping: float = 0.0
+    degenerate_eig: float = 1e-8
+    seed: int = 0
 
 
 @dataclass
@@ -132,6 +148,8 @@ class LoopConfig:
     scr_threshold: float = 0.3
     min_sift_inliers: int = 8
     coverage_overlap_mm2: float = 50 * 0.0634**2
+    coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
+    coverage_depth_gate_mm: float | None = None  # count overlap only within this depth
 
 
 @dataclass

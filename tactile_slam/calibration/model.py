@@ -161,15 +161,19 @@ class GradientDecoder:
                 f"got {tuple(bgr.shape)}"
             )
         bgr = bgr.to(self.device)
-        feats = pixel_features(bgr)
+        b, h, w, _ = bgr.shape
         if changed is None and self.skip_color_dist > 0:
             dist = torch.linalg.vector_norm(bgr.float() - self.background, dim=-1)
             changed = dilate(dist > self.skip_color_dist, 5)
         if changed is None:
-            out = self._slopes(feats.reshape(-1, 5)).reshape(*bgr.shape[:3], 2)
+            out = self._slopes(pixel_features(bgr).reshape(-1, 5)).reshape(b, h, w, 2)
             return out - self.bg_slopes
-        out = torch.zeros(*bgr.shape[:3], 2, device=self.device, dtype=torch.float32)
-        if changed.any():
-            bg = self.bg_slopes.expand(bgr.shape[0], -1, -1, -1)
-            out[changed] = self._slopes(feats[changed]) - bg[changed]
-        return out
+        flat = changed.reshape(-1).nonzero().squeeze(1)  # (N,) indices into B*H*W
+        pix = flat % (h * w)
+        feats = torch.empty(flat.shape[0], 5, device=self.device)
+        feats[:, :3] = bgr.reshape(-1, 3)[flat].float() / 255.0
+        feats[:, 3] = (pix % w).float() / w
+        feats[:, 4] = (pix // w).float() / h
+        out = torch.zeros(b * h * w, 2, device=self.device)
+        out[flat] = self._slopes(feats) - self.bg_slopes.reshape(-1, 2)[pix]
+        return out.reshape(b, h, w, 2)

@@ -26,6 +26,23 @@ def colour_mask(dist: torch.Tensor, threshold: float, dilate_size: int, erode_si
     return erode(dilate(dist > threshold, dilate_size), erode_size, border_is_contact=True)
 
 
+def percentile(x: torch.Tensor, q: float) -> torch.Tensor:
+    """Per-row percentile with linear interpolation (numpy's default).
+
+    ``(B, N)`` -> ``(B,)``; ``q`` in [0, 100]. Two ``kthvalue`` selections instead of
+    a full sort.
+    """
+    n = x.shape[1]
+    pos = q / 100.0 * (n - 1)
+    lo = int(pos)
+    hi = min(lo + 1, n - 1)
+    v_lo = torch.kthvalue(x, lo + 1, dim=1).values
+    if hi == lo:
+        return v_lo
+    v_hi = torch.kthvalue(x, hi + 1, dim=1).values
+    return v_lo + (pos - lo) * (v_hi - v_lo)
+
+
 def zero_level(height: torch.Tensor, changed: torch.Tensor, min_fraction: float = 0.05) -> torch.Tensor:
     """Shift heights so the undeformed gel is at 0.
 
@@ -43,16 +60,9 @@ def zero_level(height: torch.Tensor, changed: torch.Tensor, min_fraction: float 
     b = height.shape[0]
     flat = height.reshape(b, -1)
     free = ~changed.reshape(b, -1)
-    n_free = free.sum(dim=1)
-    # median over free pixels: push non-free pixels to +inf and take the k-th value
-    big = torch.finfo(height.dtype).max
-    masked = torch.where(free, flat, torch.full_like(flat, big))
-    k = ((n_free - 1).clamp_min(0) // 2)
-    sorted_vals = masked.sort(dim=1).values
-    median = sorted_vals.gather(1, k[:, None]).squeeze(1)
-    p85 = torch.quantile(flat, 0.85, dim=1)
-    enough = n_free >= min_fraction * flat.shape[1]
-    level = torch.where(enough, median, p85)
+    enough = free.sum(dim=1) >= min_fraction * flat.shape[1]
+    median = torch.where(free, flat, torch.nan).nanmedian(dim=1).values
+    level = torch.where(enough, median, percentile(flat, 85.0))
     return height - level[:, None, None]
 
 
@@ -60,7 +70,7 @@ def contact_mask(
     height: torch.Tensor,
     colour: torch.Tensor | None,
     height_threshold_px: float,
-    percentile: float,
+    percentile_q: float,
     final_erode: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Contact rule: colour AND height below P85 - threshold, then a final erosion
@@ -75,7 +85,7 @@ def contact_mask(
         ``(raw, eroded)`` masks, each ``(B, H, W)`` bool.
     """
     b = height.shape[0]
-    p = torch.quantile(height.reshape(b, -1), percentile / 100.0, dim=1)
+    p = percentile(height.reshape(b, -1), percentile_q)
     raw = height < (p - height_threshold_px)[:, None, None]
     if colour is not None:
         raw = raw & colour

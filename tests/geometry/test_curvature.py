@@ -1,0 +1,46 @@
+import torch
+
+from tactile_slam.geometry.curvature import curvature, divergence, normals_from_gradients
+
+from .surfaces import central_gradients, grid
+
+
+def test_normals_unit_and_direction():
+    g = torch.tensor([[[[0.5, -0.25]]]])
+    n = normals_from_gradients(g)
+    torch.testing.assert_close(torch.linalg.vector_norm(n, dim=-1), torch.ones(1, 1, 1))
+    # (-gx, -gy, 1) direction: toward the object (+z)
+    assert n[0, 0, 0, 0] < 0 and n[0, 0, 0, 1] > 0 and n[0, 0, 0, 2] > 0
+
+
+def test_divergence_of_paraboloid_is_constant():
+    r, c = grid()
+    h = 0.01 * (r**2 + c**2)  # Laplacian = 0.04
+    d = divergence(central_gradients(h))
+    torch.testing.assert_close(d[0, 5:-5, 5:-5], torch.full_like(d[0, 5:-5, 5:-5], 0.04))
+
+
+def test_curvature_masked_and_clipped(dtype):
+    r, c = grid(dtype)
+    h = 1.0 * (r**2 + c**2)  # Laplacian 4 -> clipped to 0.7
+    g = central_gradients(h)
+    mask = torch.zeros(1, 240, 320, dtype=torch.bool)
+    mask[:, 50:100, 60:120] = True
+    lap = curvature(g, mask)
+    assert lap.dtype == dtype
+    assert (lap[~mask] == 0).all()
+    torch.testing.assert_close(lap[mask], torch.full_like(lap[mask], 0.7))
+
+
+def test_curvature_batch(device):
+    g = torch.randn(3, 24, 32, 2, device=device) * 0.1
+    m = torch.ones(3, 24, 32, dtype=torch.bool, device=device)
+    out = curvature(g, m)
+    assert out.shape == (3, 24, 32)
+    torch.testing.assert_close(out[1:2], curvature(g[1:2], m[1:2]))
+
+
+def test_curvature_gradcheck():
+    g = torch.randn(1, 8, 9, 2, dtype=torch.float64, requires_grad=True) * 0.01
+    m = torch.ones(1, 8, 9, dtype=torch.bool)
+    assert torch.autograd.gradcheck(lambda x: curvature(x, m, clip=10.0), (g,))

@@ -1,0 +1,163 @@
+import numpy as np
+import pytest
+from scipy import ndimage
+import torch
+
+from tactile_slam.calibration.model import GradientDecoder, load_model
+from tactile_slam.config import Config
+from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError
+
+from . import presses
+from .surfaces import central_gradients, spherical_cap
+
+
+def _ball_frame(builder, depth=12.0, cc=0.0):
+    h = spherical_cap(49.76, depth, cc=cc)
+    g = central_gradients(h).float()
+    return builder.from_gradients(g), h
+
+
+class TestFromGradients:
+    def test_ball_height_and_contact(self):
+        fb = FrameBuilder(Config())
+        f, h = _ball_frame(fb)
+        assert isinstance(f, Frame) and len(f) == 1
+        # height: gel at zero, ball bottom at -depth (2%)
+        assert abs(float(f.height.min()) + 12.0) < 0.24
+        assert abs(float(f.height[0, 0, 0])) < 0.05
+        # contact: the height rule selects the pressed disc, then a 5x5 erosion with a
+        # non-contact border (scipy as the independent implementation)
+        true = ndimage.binary_erosion((h < -3.155).numpy(), np.ones((5, 5)), border_value=0)
+        c = f.contact[0].numpy()
+        iou = (c & true).sum() / (c | true).sum()
+        assert iou > 0.95
+        assert bool(f.in_contact[0])
+
+    def test_no_contact_on_flat_gel(self):
+        fb = FrameBuilder(Config())
+        f = fb.from_gradients(torch.zeros(1, 240, 320, 2))
+        assert not f.in_contact[0] and f.contact.sum() == 0 and (f.curvature == 0).all()
+
+    def test_given_masks_used_as_is(self):
+        fb = FrameBuilder(Config())
+        g = central_gradients(spherical_cap()).float()
+        m = torch.zeros(1, 240, 320, dtype=torch.bool)
+        m[0, 100:140, 140:180] = True
+        f = fb.from_gradients(g, contact=m)
+        assert torch.equal(f.contact, m)
+
+    def test_batch_equals_single(self):
+        fb = FrameBuilder(Config())
+        g = torch.cat([central_gradients(spherical_cap(cc=cc)).float() for cc in (-30.0, 0.0, 25.0)])
+        batch = fb.from_gradients(g, index=torch.tensor([3, 4, 5]))
+        for i in range(3):
+            single = fb.from_gradients(g[i : i + 1])
+            torch.testing.assert_close(batch[i].height, single.height)
+            assert torch.equal(batch[i].contact, single.contact)
+            torch.testing.assert_close(batch[i].curvature, single.curvature)
+        assert batch.index.tolist() == [3, 4, 5]
+        assert len(Frame.cat([batch[0], batch[2]])) == 2
+
+    def test_float32_vs_float64_inputs(self):
+        fb = FrameBuilder(Config())
+        g64 = central_gradients(spherical_cap())
+        f32 = fb.from_gradients(g64.float())
+        f64 = fb.from_gradients(g64)
+        torch.testing.assert_close(f32.height, f64.height)
+
+    def test_device(self, device):
+        fb = FrameBuilder(Config())
+        f, _ = _ball_frame(fb)
+        f2 = f.to(device)
+        assert f2.height.device.type == device.type
+
+    @pytest.mark.parametrize(
+        "bad,match",
+        [
+            (torch.zeros(240, 320, 2), r"\(B, H, W, 2\)"),
+            (torch.zeros(1, 100, 320, 2), "size"),
+            (torch.full((1, 240, 320, 2), float("nan")), "NaN"),
+            (torch.zeros(0, 240, 320, 2), "empty"),
+        ],
+    )
+    def test_bad_gradients(self, bad, match):
+        with pytest.raises(InputError, match=match):
+            FrameBuilder(Config()).from_gradients(bad)
+
+    def test_mask_shape_mismatch(self):
+        with pytest.raises(InputError, match="contact masks"):
+            FrameBuilder(Config()).from_gradients(torch.zeros(1, 240, 320, 2), contact=torch.zeros(1, 10, 10))
+
+
+@pytest.fixture(scope="module")
+def real(mini_data):
+    model, _ = load_model(mini_data / "reference_model" / "nnmodel.pth")
+    bg = presses.load_background(mini_data)
+    return mini_data, FrameBuilder(Config(), GradientDecoder(model, bg)), presses.catalog(mini_data)
+
+
+class TestRealPresses:
+    def test_contact_mask_overlaps_ball_disc(self, real):
+        root, fb, cat = real
+        ious = []
+        for reldir, diam in cat[::3]:
+            f = fb.from_bgr(presses.load_press(root, reldir)[None])
+            cx, cy, rad = presses.fit_disc(f.gradients[0].numpy(), diam)
+            yy, xx = np.mgrid[0:240, 0:320]
+            disc = np.hypot(xx - cx, yy - cy) <= rad
+            c = f.contact[0].numpy()
+            ious.append((c & disc).sum() / max((c | disc).sum(), 1))
+        assert np.median(ious) >= 0.7, ious
+
+    def test_reference_model_matches_analytic_ball(self, real):
+        root, fb, cat = real
+        errs = []
+        for reldir, diam in cat[::4]:
+            f = fb.from_bgr(presses.load_press(root, reldir)[None])
+            g = f.gradients[0].numpy()
+            cx, cy, rad = presses.fit_disc(g, diam)
+            big_r = diam / presses.MM_PER_PX / 2
+            yy, xx = np.mgrid[0:240, 0:320]
+            dx, dy = xx - cx, yy - cy
+            inside = np.hypot(dx, dy) < rad - 4
+            dz = np.sqrt(np.clip(big_r**2 - dx**2 - dy**2, 1e-9, None))
+            true = np.stack([np.arctan2(dx, dz), np.arctan2(dy, dz)], -1)[inside]
+            est = np.arctan(g[inside])
+            errs.append(np.abs(est - true))
+        mae = float(np.concatenate(errs).mean())
+        assert 0.02 < mae < 0.15, mae
+
+    def test_batch_equals_single_bgr(self, real):
+        root, fb, cat = real
+        imgs = torch.stack([presses.load_press(root, r) for r, _ in cat[:3]])
+        batch = fb.from_bgr(imgs)
+        single = fb.from_bgr(imgs[1:2])
+        torch.testing.assert_close(batch[1].gradients, single.gradients)
+        assert torch.equal(batch[1].contact, single.contact)
+
+    def test_mlp_skip_barely_changes_geometry(self, real):
+        """Skipping unchanged pixels must not move the contact or the depth."""
+        root, fb, cat = real
+        img = presses.load_press(root, cat[5][0])[None]
+        cfg = Config()
+        cfg.contact.mlp_skip_color_dist = 0.0
+        full = FrameBuilder(cfg, fb.decoder).from_bgr(img)
+        fast = fb.from_bgr(img)
+        c1, c2 = full.contact[0], fast.contact[0]
+        assert (c1 & c2).sum() / (c1 | c2).sum() > 0.95
+        assert abs(float(full.height.min() - fast.height.min())) < 0.05 * abs(float(full.height.min()))
+
+    @pytest.mark.parametrize(
+        "bad,match",
+        [
+            (torch.zeros(1, 120, 160, 3, dtype=torch.uint8), "shape"),
+            (torch.full((1, 240, 320, 3), float("nan")), "NaN"),
+        ],
+    )
+    def test_bad_images(self, real, bad, match):
+        with pytest.raises(InputError, match=match):
+            real[1].from_bgr(bad)
+
+    def test_from_bgr_needs_decoder(self):
+        with pytest.raises(InputError, match="calibration model"):
+            FrameBuilder(Config()).from_bgr(torch.zeros(1, 240, 320, 3, dtype=torch.uint8))
