@@ -1,0 +1,68 @@
+import pytest
+import torch
+
+from tactile_slam.calibration.model import (
+    CalibrationModelError,
+    GradientDecoder,
+    GradientMLP,
+    load_model,
+    pixel_features,
+    save_model,
+)
+
+
+def test_reference_model_loads(mini_data):
+    model, meta = load_model(mini_data / "reference_model" / "nnmodel.pth")
+    assert model.hidden == (32, 32, 32) and meta == {}
+    assert sum(p.numel() for p in model.parameters()) == 2370
+    assert not model.training
+
+
+def test_roundtrip(tmp_path):
+    torch.manual_seed(0)
+    m = GradientMLP((16, 8))
+    save_model(tmp_path / "m.pt", m, {"sensor": "test"})
+    back, meta = load_model(tmp_path / "m.pt")
+    assert back.hidden == (16, 8) and meta == {"sensor": "test"}
+    x = torch.rand(10, 5)
+    torch.testing.assert_close(back(x), m(x))
+
+
+def test_bad_files(tmp_path):
+    with pytest.raises(CalibrationModelError, match="not found"):
+        load_model(tmp_path / "none.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a zip")
+    with pytest.raises(CalibrationModelError, match="cannot read"):
+        load_model(tmp_path / "junk.pt")
+    torch.save({"fc1.weight": torch.zeros(3, 4)}, tmp_path / "bad.pt")
+    with pytest.raises(CalibrationModelError):
+        load_model(tmp_path / "bad.pt")
+
+
+def test_features_layout():
+    img = torch.zeros(1, 2, 4, 3, dtype=torch.uint8)
+    img[0, 1, 3] = torch.tensor([255, 0, 51], dtype=torch.uint8)
+    f = pixel_features(img)
+    torch.testing.assert_close(f[0, 1, 3], torch.tensor([1.0, 0.0, 0.2, 0.75, 0.5]))
+
+
+def test_decoder_background_gives_zero_and_skip_is_consistent(device):
+    torch.manual_seed(0)
+    m = GradientMLP().to(device)
+    bg = torch.rand(24, 32, 3, device=device) * 255
+    dec = GradientDecoder(m, bg, skip_color_dist=0)
+    g = dec(bg[None].repeat(2, 1, 1, 1))
+    assert g.shape == (2, 24, 32, 2)
+    torch.testing.assert_close(g, torch.zeros_like(g), atol=1e-5, rtol=0)
+    img = bg.clone()
+    img[5:10, 5:10] += 40
+    full = GradientDecoder(m, bg, skip_color_dist=0)(img[None])
+    sparse = GradientDecoder(m, bg, skip_color_dist=8)(img[None])
+    torch.testing.assert_close(sparse[0, 5:10, 5:10], full[0, 5:10, 5:10])
+    assert (sparse[0, :2] == 0).all()
+
+
+def test_decoder_bad_shape():
+    dec = GradientDecoder(GradientMLP(), torch.zeros(24, 32, 3))
+    with pytest.raises(ValueError, match="image batch"):
+        dec(torch.zeros(1, 24, 31, 3))

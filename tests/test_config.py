@@ -1,0 +1,87 @@
+import pytest
+
+from tactile_slam.config import Config, ConfigError, digit, gelsight_mini, load_config
+
+GELSLAM_YAML = """
+device_config:
+  device_name: "GelSight Mini"
+  ppmm: 0.0634
+  imgh: 240
+  imgw: 320
+  raw_imgh: 2464
+  raw_imgw: 3280
+  framerate: 25
+  calibration_model_path: "model/nnmodel.pth"
+contact_mask_config:
+  color_dist_threshold: 15
+  height_threshold: 0.2
+gelslam_config:
+  track_config:
+    contact_threshold: 500
+    scr_threshold: 0.3
+    ccs_threshold: 0.7
+  pose_graph_config:
+    coverage_graph_overlap_threshold: 50
+    min_sift_inliers: 8
+    scr_threshold: 0.3
+    ccs_threshold: 0.7
+"""
+
+
+def test_presets():
+    mini = gelsight_mini()
+    assert mini.sensor.mm_per_px == 0.0634 and mini.sensor.shape == (240, 320) and mini.sensor.fps == 25
+    assert (mini.sensor.raw_width, mini.sensor.raw_height) == (3280, 2464)
+    assert mini.final_erode_px == 5
+    assert mini.min_contact_px == pytest.approx(500)
+    assert mini.height_threshold_px == pytest.approx(3.1546, abs=1e-3)
+    d = digit()
+    assert d.sensor.mm_per_px == 0.0405 and d.sensor.fps == 60 and (d.sensor.raw_width, d.sensor.raw_height) == (640, 480)
+    # pixel-valued constants follow the sensor scale
+    assert d.min_contact_px == pytest.approx(500 * (0.0634 / 0.0405) ** 2)
+
+
+def test_gelslam_layout(tmp_path):
+    p = tmp_path / "config.yaml"
+    p.write_text(GELSLAM_YAML)
+    cfg = Config.from_yaml(p)
+    assert cfg.sensor.mm_per_px == 0.0634  # ppmm means mm per pixel: never inverted
+    assert cfg.sensor.model_path == str((tmp_path / "model/nnmodel.pth").resolve())
+    assert cfg.tracking.ccs_threshold == 0.7 and cfg.loop.min_sift_inliers == 8
+    assert cfg.min_contact_px == pytest.approx(500)
+    assert cfg.loop.coverage_overlap_mm2 == pytest.approx(50 * 0.0634**2)
+
+
+def test_own_layout_roundtrip(tmp_path):
+    cfg = Config()
+    cfg.normalflow.n_samples = 1234
+    cfg.sensor.name = "X"
+    p = tmp_path / "c.yaml"
+    cfg.save(p)
+    back = load_config(p)
+    assert back.normalflow.n_samples == 1234 and back.sensor.name == "X"
+    assert back.to_dict() == cfg.to_dict()
+
+
+@pytest.mark.parametrize(
+    "text,match",
+    [
+        ("sensor: {mm_per_px: -1}", "mm_per_px"),
+        ("sensr: {}", "unknown config section"),
+        ("sensor: {foo: 1}", "unknown key sensor.foo"),
+        ("device_config: {ppmx: 1}", "unknown key device_config.ppmx"),
+        ("- a\n- b", "mapping"),
+        ("sensor: [1, 2", "not valid YAML"),
+        ("curvature: {blur_ksize: 4}", "odd"),
+    ],
+)
+def test_bad_configs(tmp_path, text, match):
+    p = tmp_path / "c.yaml"
+    p.write_text(text)
+    with pytest.raises(ConfigError, match=match):
+        Config.from_yaml(p)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="not found"):
+        load_config(tmp_path / "nope.yaml")
