@@ -1,0 +1,441 @@
+"""Boundary weights and the coverage set (method.md section 6.1).
+
+The coverage set is the greedy subset of keyframes that together cover everything
+touched so far: a keyframe joins when it reveals more than a threshold of new,
+boundary-weighted contact area, and earlier keyframes leave when their neighbours
+cover them. Loop closure uses its ``active`` keyframes as candidates and
+reconstruction fuses each active keyframe with its coverage neighbours.
+
+All projections are orthographic along the target sensor's z axis (method.md 1.2):
+a point P in a sensor frame lands on pixel ``(P_y / s + (H - 1) / 2, P_x / s + (W - 1) / 2)``
+with ``s`` the pixel size in metres. Poses are ``start_T_kf`` float64 in metres: they
+map keyframe-sensor coordinates into the group's start frame.
+
+Differences from the public code (method.md 6.1, 10.3):
+
+* the pruning loop iterates over a copy of the neighbour list, so the neighbour
+  after a pruned one is not skipped;
+* keyframes absorbed in a merge are compared with each other as well as with the
+  dominant group's members;
+* options (off by default): symmetric overlap and a depth gate.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+
+import torch
+import torch.nn.functional as F
+
+from tactile_slam.config import Config
+from tactile_slam.tracking.keyframe import Keyframe
+
+# Points per projection chunk: bounds the memory of batched projections.
+_CHUNK_POINTS = 1 << 22
+
+
+class CoverageError(ValueError):
+    """Invalid input to the coverage set (unknown id, bad pose, empty contact ...)."""
+
+
+# --------------------------------------------------------------------------- maps
+
+
+def distance_to_background(contact: torch.Tensor, max_distance: float) -> torch.Tensor:
+    """Euclidean distance (px) from each contact pixel to the nearest non-contact pixel.
+
+    Pixels outside the image count as non-contact. Exact up to ``max_distance``; larger
+    distances are clamped to it (the boundary weight has saturated long before).
+    Separable exact EDT: a 1-D column distance, then a windowed row minimisation of
+    ``dc^2 + g^2``.
+
+    Args:
+        contact: ``(B, H, W)`` bool.
+        max_distance: clamp in px (> 0).
+
+    Returns:
+        ``(B, H, W)`` float32, 0 outside contact.
+    """
+    if contact.ndim != 3:
+        raise CoverageError(f"contact must be (B, H, W), got {tuple(contact.shape)}")
+    b, h, w = contact.shape
+    dev = contact.device
+    m = int(math.ceil(max_distance))
+    # 1-D distance along each column to the nearest background row (padded rows count).
+    bg = F.pad(~contact, (0, 0, 1, 1), value=True)  # (B, H+2, W)
+    rows = torch.arange(h + 2, device=dev).view(1, -1, 1).expand(b, h + 2, w)
+    big = h + w + 2 * m + 4
+    last_above = torch.where(bg, rows, torch.full_like(rows, -big)).cummax(dim=1).values
+    next_below = torch.where(bg, rows, torch.full_like(rows, 2 * big)).flip(1).cummin(dim=1).values.flip(1)
+    g = torch.minimum(rows - last_above, next_below - rows)[:, 1:-1].float().clamp(max=m)  # (B, H, W)
+    # Row pass: min over |dc| <= m of dc^2 + g(c + dc)^2, background beyond the border.
+    gp = F.pad(g.square(), (m, m), value=0.0)  # out-of-image columns are background
+    win = gp.unfold(2, 2 * m + 1, 1)  # (B, H, W, 2m+1)
+    dc2 = (torch.arange(-m, m + 1, device=dev, dtype=torch.float32)).square()
+    d = (win + dc2).amin(dim=-1).sqrt().clamp(max=float(max_distance))
+    return d * contact
+
+
+def boundary_weights(contact: torch.Tensor, length: float | None = None) -> torch.Tensor:
+    """Boundary weights ``W = (tanh(d / l - 3) + 1) / 2`` on contact, 0 elsewhere.
+
+    ``d`` is :func:`distance_to_background` and ``l`` defaults to ``H / 60`` (4 px on a
+    240-row image): W(1 px) = 0.004, W(12 px) = 0.5, W(20 px) = 0.98.
+
+    Args:
+        contact: ``(B, H, W)`` bool (the eroded contact mask).
+        length: ``l`` in px; ``None`` derives it from the image height.
+
+    Returns:
+        ``(B, H, W)`` float32 in [0, 1].
+    """
+    l = contact.shape[-2] / 60.0 if length is None else float(length)
+    if not l > 0:
+        raise CoverageError(f"weight length must be > 0, got {l}")
+    d = distance_to_background(contact, 12.0 * l)  # tanh(9) == 1 in float32
+    return 0.5 * (torch.tanh(d / l - 3.0) + 1.0) * contact
+
+
+def point_map(height: torch.Tensor, m_per_px: float) -> torch.Tensor:
+    """Metric point of every pixel, in its sensor frame (method.md 1.2).
+
+    Args:
+        height: ``(B, H, W)`` px (gel at 0, pressed negative).
+        m_per_px: pixel size ``s`` in metres.
+
+    Returns:
+        ``(B, H, W, 3)`` float32 metres: ``((c - (W-1)/2) s, (r - (H-1)/2) s, h s)``.
+    """
+    b, h, w = height.shape
+    dev = height.device
+    ys = (torch.arange(h, device=dev, dtype=torch.float32) - (h - 1) / 2.0) * m_per_px
+    xs = (torch.arange(w, device=dev, dtype=torch.float32) - (w - 1) / 2.0) * m_per_px
+    return torch.stack(
+        [xs.view(1, 1, w).expand(b, h, w), ys.view(1, h, 1).expand(b, h, w), height.float() * m_per_px], dim=-1
+    )
+
+
+def transform_points(a_T_b: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """Apply ``(P, 4, 4)`` transforms to ``(P, N, 3)`` points (b -> a); float32 result."""
+    rot = a_T_b[:, :3, :3].to(points.dtype)
+    trans = a_T_b[:, :3, 3].to(points.dtype)
+    return torch.baddbmm(trans.unsqueeze(1), points, rot.transpose(1, 2))
+
+
+def pixel_coords(points: torch.Tensor, m_per_px: float, shape: tuple[int, int]) -> torch.Tensor:
+    """Orthographic projection: ``(..., 3)`` metres -> ``(..., 2)`` float ``(col, row)``."""
+    h, w = shape
+    return torch.stack([points[..., 0] / m_per_px + (w - 1) / 2.0, points[..., 1] / m_per_px + (h - 1) / 2.0], -1)
+
+
+def sample_nearest(maps: torch.Tensor, cr: torch.Tensor) -> torch.Tensor:
+    """Nearest-pixel lookup, 0 outside the image.
+
+    Args:
+        maps: ``(P, H, W)`` or ``(P, C, H, W)``.
+        cr: ``(P, N, 2)`` float ``(col, row)``.
+
+    Returns:
+        ``(P, N)`` or ``(P, C, N)``.
+    """
+    squeeze = maps.ndim == 3
+    if squeeze:
+        maps = maps.unsqueeze(1)
+    p, c, h, w = maps.shape
+    col = torch.round(cr[..., 0]).long()
+    row = torch.round(cr[..., 1]).long()
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    idx = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).unsqueeze(1).expand(p, c, -1)
+    out = maps.reshape(p, c, h * w).gather(2, idx) * inside.unsqueeze(1)
+    return out.squeeze(1) if squeeze else out
+
+
+# --------------------------------------------------------------------------- coverage set
+
+
+@dataclass
+class _Node:
+    """Coverage data of one keyframe (float32 maps on the set's device)."""
+
+    id: int
+    group: int
+    points: torch.Tensor  # (N, 3) contact points, row-major, metres, keyframe frame
+    weights: torch.Tensor  # (N,) boundary weights at those points
+    wmap: torch.Tensor  # (H, W) boundary weights
+    hmap: torch.Tensor  # (H, W) height, px
+    radius: float  # max |point|, metres
+    radius_xy: float  # max |point_xy|, metres
+    start_T_kf: torch.Tensor  # (4, 4) float64
+    active: bool = True
+    neighbours: set[int] = field(default_factory=set)
+
+
+class CoverageSet:
+    """Greedy coverage set over keyframes, one graph per connected group.
+
+    Args:
+        config: ``config.loop`` gives the thresholds and options, ``config.sensor`` the
+            scale used to convert the area threshold to weighted pixels.
+        device: where projections run; defaults to the first keyframe's device.
+
+    Thresholds: link when overlap > ``coverage_overlap_mm2 / mm_per_px^2`` weighted px,
+    prune when the revealed weight is below it (50 weighted px on a GelSight Mini).
+    """
+
+    def __init__(self, config: Config, device: torch.device | str | None = None):
+        self.config = config
+        self.m_per_px = config.sensor.m_per_px
+        self.threshold = config.sensor.px_from_mm2(config.loop.coverage_overlap_mm2)
+        self.symmetric = bool(config.loop.coverage_symmetric)
+        gate = config.loop.coverage_depth_gate_mm
+        self.depth_gate_m = None if gate is None else float(gate) / 1000.0
+        self.device = None if device is None else torch.device(device)
+        self._nodes: dict[int, _Node] = {}
+
+    # ------------------------------------------------------------------ queries
+    def __len__(self) -> int:
+        return len(self._nodes)
+
+    def __contains__(self, kf_id: int) -> bool:
+        return kf_id in self._nodes
+
+    @property
+    def ids(self) -> list[int]:
+        """All keyframe ids in insertion order."""
+        return list(self._nodes)
+
+    @property
+    def active(self) -> list[int]:
+        """Active keyframe ids in insertion order."""
+        return [i for i, n in self._nodes.items() if n.active]
+
+    def is_active(self, kf_id: int) -> bool:
+        return self._node(kf_id).active
+
+    def neighbours(self, kf_id: int) -> list[int]:
+        """Sorted coverage neighbours of ``kf_id`` (empty once inactive)."""
+        return sorted(self._node(kf_id).neighbours)
+
+    def group(self, kf_id: int) -> int:
+        return self._node(kf_id).group
+
+    def weights(self, kf_id: int) -> torch.Tensor:
+        """``(H, W)`` boundary-weight map of an active keyframe."""
+        return self._node(kf_id).wmap
+
+    def pose(self, kf_id: int) -> torch.Tensor:
+        """``start_T_kf`` ``(4, 4)`` float64 of ``kf_id``."""
+        return self._node(kf_id).start_T_kf
+
+    def _node(self, kf_id: int) -> _Node:
+        try:
+            return self._nodes[kf_id]
+        except KeyError:
+            raise CoverageError(f"keyframe {kf_id} is not in the coverage set") from None
+
+    # ------------------------------------------------------------------ updates
+    def add(self, keyframe: Keyframe, start_T_kf: torch.Tensor, group: int = 0) -> bool:
+        """Insert a keyframe (method.md 6.1, steps 1-3) and return whether it stays active.
+
+        Args:
+            keyframe: the keyframe (its ``frame`` has ``B = 1``).
+            start_T_kf: ``(4, 4)`` pose of the keyframe in its group's start frame, metres.
+            group: connected-group label; only keyframes of the same group are linked.
+        """
+        if keyframe.id in self._nodes:
+            raise CoverageError(f"keyframe {keyframe.id} was already added")
+        node = self._make_node(keyframe, start_T_kf, group)
+        self._nodes[node.id] = node
+        others = [n for n in self._nodes.values() if n.active and n.group == group and n.id != node.id]
+        self._link_and_prune(node, others)
+        return node.active
+
+    def update_poses(self, poses: Mapping[int, torch.Tensor]) -> None:
+        """Replace ``start_T_kf`` of the given keyframes (links are kept as they are).
+
+        Args:
+            poses: keyframe id -> ``(4, 4)`` pose in metres, in its group's start frame.
+        """
+        for kf_id, pose in poses.items():
+            node = self._node(kf_id)
+            node.start_T_kf = _check_pose(pose, node.start_T_kf.device)
+
+    def merge(self, dominant: int, absorbed: Iterable[int]) -> None:
+        """Merge groups after a loop closure (call :meth:`update_poses` first).
+
+        Every keyframe of the ``absorbed`` groups joins ``dominant``. Each active absorbed
+        keyframe, in insertion order, clears its links, relinks to the active keyframes of
+        the dominant group (including absorbed ones already relinked, unlike the public
+        code), and is pruned as in :meth:`add`.
+        """
+        absorbed = set(absorbed) - {dominant}
+        moved = [n for n in self._nodes.values() if n.group in absorbed]
+        for n in moved:
+            n.group = dominant
+        moved_ids = {n.id for n in moved}
+        for n in moved:
+            n.neighbours.clear()
+        for n in self._nodes.values():
+            n.neighbours -= moved_ids
+        done: set[int] = set()
+        for node in moved:
+            done.add(node.id)
+            if not node.active:
+                continue
+            others = [
+                n for n in self._nodes.values()
+                if n.active and n.group == dominant and n.id != node.id and (n.id not in moved_ids or n.id in done)
+            ]
+            self._link_and_prune(node, others)
+
+    # ------------------------------------------------------------------ internals
+    def _make_node(self, keyframe: Keyframe, start_T_kf: torch.Tensor, group: int) -> _Node:
+        frame = keyframe.frame
+        if len(frame) != 1:
+            raise CoverageError(f"keyframe {keyframe.id}: frame must hold one image, got {len(frame)}")
+        if self.device is None:
+            self.device = frame.device
+        dev = self.device
+        contact = frame.contact[0].to(dev)
+        if not bool(contact.any()):
+            raise CoverageError(f"keyframe {keyframe.id} has no contact pixels")
+        height = frame.height[0].to(dev, torch.float32)
+        if not torch.isfinite(height[contact]).all():
+            raise CoverageError(f"keyframe {keyframe.id}: height has NaN or Inf in contact")
+        wmap = boundary_weights(contact.unsqueeze(0))[0]
+        points = point_map(height.unsqueeze(0), self.m_per_px)[0][contact]
+        return _Node(
+            id=int(keyframe.id),
+            group=int(group),
+            points=points,
+            weights=wmap[contact],
+            wmap=wmap,
+            hmap=height,
+            radius=float(points.norm(dim=1).max()),
+            radius_xy=float(points[:, :2].norm(dim=1).max()),
+            start_T_kf=_check_pose(start_T_kf, dev),
+        )
+
+    def _link_and_prune(self, node: _Node, others: Sequence[_Node]) -> None:
+        cand = self._candidates(node, others)
+        if cand:
+            ov = self.overlaps(node, cand)
+            for other, o in zip(cand, ov.tolist()):
+                if o > self.threshold:
+                    node.neighbours.add(other.id)
+                    other.neighbours.add(node.id)
+        if self.revealed(node) < self.threshold:
+            self._deactivate(node)
+            return
+        for nb_id in sorted(node.neighbours):  # a copy: pruning edits the set
+            nb = self._nodes[nb_id]
+            if nb.active and self.revealed(nb) < self.threshold:
+                self._deactivate(nb)
+
+    def _deactivate(self, node: _Node) -> None:
+        for nb_id in node.neighbours:
+            self._nodes[nb_id].neighbours.discard(node.id)
+        node.neighbours.clear()
+        node.active = False
+        # Inactive keyframes are never compared again: release their maps.
+        node.points = node.points[:0]
+        node.weights = node.weights[:0]
+        node.wmap = node.wmap.new_zeros(0, 0)
+        node.hmap = node.hmap.new_zeros(0, 0)
+
+    def _candidates(self, node: _Node, others: Sequence[_Node]) -> list[_Node]:
+        """Others that can overlap ``node`` at all: z axes not opposed, and footprints
+        that meet in ``node``'s image plane (an exact test, since W is 0 outside contact)."""
+        if not others:
+            return []
+        poses = torch.stack([o.start_T_kf for o in others])
+        t_T_o = torch.linalg.solve(node.start_T_kf, poses)  # (R, 4, 4): inv(start_T_t) start_T_o
+        same_side = (poses[:, :3, 2] @ node.start_T_kf[:3, 2]) >= 0
+        radii = torch.tensor([o.radius for o in others], dtype=torch.float64, device=poses.device)
+        reach = radii + node.radius_xy + 2.0 * self.m_per_px
+        near = t_T_o[:, :2, 3].norm(dim=1) <= reach
+        if self.symmetric:
+            o_T_t = torch.linalg.inv(t_T_o)
+            radii_xy = torch.tensor([o.radius_xy for o in others], dtype=torch.float64, device=poses.device)
+            near &= o_T_t[:, :2, 3].norm(dim=1) <= radii_xy + node.radius + 2.0 * self.m_per_px
+        keep = (same_side & near).tolist()
+        return [o for o, k in zip(others, keep) if k]
+
+    def overlaps(self, tar: _Node, refs: Sequence[_Node]) -> torch.Tensor:
+        """overlap(tar <- ref) for each ref (or the symmetric minimum), ``(R,)`` weighted px.
+
+        The sum, over ref's contact points moved into tar's frame, of tar's weight at the
+        nearest pixel; 0 when the two z axes oppose.
+        """
+        poses = torch.stack([r.start_T_kf for r in refs])
+        t_T_r = torch.linalg.solve(tar.start_T_kf, poses)
+        opposed = (poses[:, :3, 2] @ tar.start_T_kf[:3, 2]) < 0
+        ov = self._sum_ref_into(tar, refs, t_T_r)
+        if self.symmetric:
+            r_T_t = torch.linalg.inv(t_T_r)
+            back = self._sum_points_into(tar.points, refs, r_T_t).sum(dim=1)
+            ov = torch.minimum(ov, back)
+        return torch.where(opposed, torch.zeros_like(ov), ov)
+
+    def _sum_ref_into(self, tar: _Node, refs: Sequence[_Node], t_T_r: torch.Tensor) -> torch.Tensor:
+        """Sum over each ref's points of tar's weight at their projection: ``(R,)``."""
+        out = []
+        start = 0
+        while start < len(refs):
+            stop = start + 1
+            total = refs[start].points.shape[0]
+            while stop < len(refs) and (stop - start + 1) * max(total, refs[stop].points.shape[0]) <= _CHUNK_POINTS:
+                total = max(total, refs[stop].points.shape[0])
+                stop += 1
+            chunk = refs[start:stop]
+            pts = torch.nn.utils.rnn.pad_sequence([r.points for r in chunk], batch_first=True)
+            valid = torch.nn.utils.rnn.pad_sequence(
+                [torch.ones(r.points.shape[0], dtype=torch.bool, device=pts.device) for r in chunk], batch_first=True
+            )
+            moved = transform_points(t_T_r[start:stop], pts)
+            cr = pixel_coords(moved, self.m_per_px, tar.wmap.shape)
+            maps = tar.wmap.unsqueeze(0).expand(len(chunk), -1, -1)
+            w = sample_nearest(maps, cr)
+            if self.depth_gate_m is not None:
+                h = sample_nearest(tar.hmap.unsqueeze(0).expand(len(chunk), -1, -1), cr) * self.m_per_px
+                w = w * ((moved[..., 2] - h).abs() < self.depth_gate_m)
+            out.append((w * valid).sum(dim=1))
+            start = stop
+        return torch.cat(out)
+
+    def _sum_points_into(self, points: torch.Tensor, refs: Sequence[_Node], r_T_p: torch.Tensor) -> torch.Tensor:
+        """Weights of each ref sampled at ``points`` moved by ``r_T_p``: ``(R, N)``."""
+        out = []
+        step = max(1, _CHUNK_POINTS // max(points.shape[0], 1))
+        for start in range(0, len(refs), step):
+            chunk = refs[start:start + step]
+            moved = transform_points(r_T_p[start:start + step], points.unsqueeze(0).expand(len(chunk), -1, -1))
+            cr = pixel_coords(moved, self.m_per_px, chunk[0].wmap.shape)
+            w = sample_nearest(torch.stack([r.wmap for r in chunk]), cr)
+            if self.depth_gate_m is not None:
+                h = sample_nearest(torch.stack([r.hmap for r in chunk]), cr) * self.m_per_px
+                w = w * ((moved[..., 2] - h).abs() < self.depth_gate_m)
+            out.append(w)
+        return torch.cat(out)
+
+    def revealed(self, node: _Node) -> float:
+        """Weight of ``node`` not covered by its neighbours (weighted px):
+        ``sum_p max(W_k(p) - max_n W_n(pi(n_T_k p)), 0)``; ``sum W_k`` without neighbours."""
+        if not node.neighbours:
+            return float(node.weights.sum())
+        nbs = [self._nodes[i] for i in sorted(node.neighbours)]
+        poses = torch.stack([n.start_T_kf for n in nbs])
+        n_T_k = torch.linalg.solve(poses, node.start_T_kf.unsqueeze(0).expand(len(nbs), -1, -1))
+        cover = self._sum_points_into(node.points, nbs, n_T_k).amax(dim=0)
+        return float((node.weights - cover).clamp(min=0).sum())
+
+
+def _check_pose(pose: torch.Tensor, device: torch.device) -> torch.Tensor:
+    pose = torch.as_tensor(pose, dtype=torch.float64, device=device)
+    if pose.shape != (4, 4):
+        raise CoverageError(f"a pose must be (4, 4), got {tuple(pose.shape)}")
+    if not torch.isfinite(pose).all():
+        raise CoverageError("a pose contains NaN or Inf")
+    return pose
