@@ -1,0 +1,137 @@
+"""Gradient-map sequences: frames that already carry slopes and contact masks.
+
+Two layouts (method.md section 9.1):
+
+* a folder (or its ``gradient_maps.npy``) with ``gradient_maps.npy`` ``(N, H, W, 2)`` and
+  ``contact_masks.npy`` ``(N, H, W)``: the NormalFlow tracking dataset. Both are
+  memory-mapped, so long sequences are read frame by frame;
+* an ``.npz`` with ``gradients`` ``(N, H, W, 2)`` (float16/32/64) and ``contact``
+  ``(N, H, W)``, e.g. the simulator's ``gt_gradients.npz``; loaded whole.
+
+Gradients are delivered as float32, masks as bool; a frame with NaN or Inf raises.
+"""
+
+from __future__ import annotations
+
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from tactile_slam.geometry.frame import InputError
+from tactile_slam.io.frames import RawFrame, SequenceSource
+
+GRADIENTS_NPY = "gradient_maps.npy"
+CONTACT_NPY = "contact_masks.npy"
+GRADIENTS_KEY = "gradients"
+CONTACT_KEY = "contact"
+
+
+def _load_npy(path: Path) -> np.ndarray:
+    if not path.is_file():
+        raise InputError(f"gradient sequence file not found: {path}")
+    try:
+        return np.load(path, mmap_mode="r", allow_pickle=False)
+    except (ValueError, OSError) as exc:
+        raise InputError(f"cannot read {path}: {exc}") from exc
+
+
+def _load_npz(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    if not path.is_file():
+        raise InputError(f"gradient sequence file not found: {path}")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            for key in (GRADIENTS_KEY, CONTACT_KEY):
+                if key not in data:
+                    raise InputError(f"{path} has no array {key!r} (found {sorted(data.files)})")
+            return data[GRADIENTS_KEY], data[CONTACT_KEY]
+    except (ValueError, OSError, zipfile.BadZipFile) as exc:
+        if isinstance(exc, InputError):
+            raise
+        raise InputError(f"cannot read {path}: {exc}") from exc
+
+
+def check_sequence(gradients: np.ndarray, contact: np.ndarray, where: str) -> None:
+    """Raise :class:`InputError` unless ``gradients`` is ``(N, H, W, 2)`` floating,
+    ``contact`` is ``(N, H, W)`` bool or integer, and ``N > 0``."""
+    if gradients.ndim != 4 or gradients.shape[-1] != 2:
+        raise InputError(f"{where}: gradients must be (N, H, W, 2), got {gradients.shape}")
+    if not np.issubdtype(gradients.dtype, np.floating):
+        raise InputError(f"{where}: gradients must be floating point, got {gradients.dtype}")
+    if contact.ndim != 3 or contact.shape != gradients.shape[:3]:
+        raise InputError(
+            f"{where}: contact masks {contact.shape} do not match gradients {gradients.shape[:3]}"
+        )
+    if not (contact.dtype == np.bool_ or np.issubdtype(contact.dtype, np.integer)):
+        raise InputError(f"{where}: contact masks must be bool or integer, got {contact.dtype}")
+    if gradients.shape[0] == 0:
+        raise InputError(f"{where}: the sequence is empty (0 frames)")
+
+
+class GradientSequence(SequenceSource):
+    """Frames ``0..N-1`` of gradient maps and contact masks, timestamps ``index / fps``.
+
+    Args:
+        path: a folder with ``gradient_maps.npy`` + ``contact_masks.npy``, the
+            ``gradient_maps.npy`` itself, or an ``.npz`` with ``gradients`` + ``contact``.
+        fps: frame rate of the sequence.
+        shape: expected ``(H, W)``; ``None`` accepts the files' size. Gradient maps are
+            never resized (resampling changes slopes).
+
+    Raises:
+        InputError: missing or unreadable files, shape mismatch between gradients and
+            masks, an empty sequence, the wrong size; NaN or Inf in a frame (when that
+            frame is read; ``.npz`` files are checked whole on opening).
+    """
+
+    def __init__(self, path: str | Path, fps: float, shape: tuple[int, int] | None = None):
+        path = Path(path)
+        self.name = str(path)
+        if not fps > 0:
+            raise InputError(f"fps must be > 0, got {fps}")
+        self._npy_paths: tuple[Path, Path] | None = None
+        if path.suffix.lower() == ".npz":
+            self.gradients, self.contact = _load_npz(path)
+            check_sequence(self.gradients, self.contact, str(path))
+            bad = ~np.isfinite(self.gradients).reshape(len(self.gradients), -1).all(axis=1)
+            if bad.any():
+                raise InputError(f"{path}: gradients of frame {int(np.argmax(bad))} contain NaN or Inf")
+        else:
+            if path.is_dir():
+                folder, grad_path = path, path / GRADIENTS_NPY
+            elif path.suffix.lower() == ".npy":
+                folder, grad_path = path.parent, path
+            else:
+                raise InputError(f"not a gradient sequence (folder, .npy or .npz): {path}")
+            self._npy_paths = (grad_path, folder / CONTACT_NPY)
+            self.gradients, self.contact = (_load_npy(p) for p in self._npy_paths)
+            check_sequence(self.gradients, self.contact, str(path))
+        self.fps = float(fps)
+        native = (int(self.gradients.shape[1]), int(self.gradients.shape[2]))
+        if shape is not None and tuple(shape) != native:
+            raise InputError(
+                f"{path}: gradient maps are {native[1]}x{native[0]} but the working size is {shape[1]}x{shape[0]}"
+            )
+        self.shape = native
+
+    def __len__(self) -> int:
+        return int(self.gradients.shape[0])
+
+    def frame(self, position: int) -> RawFrame:
+        gradients = np.array(self.gradients[position], dtype=np.float32)
+        if not np.isfinite(gradients).all():
+            raise InputError(f"{self.name}: gradients of frame {position} contain NaN or Inf")
+        contact = np.array(self.contact[position], dtype=bool)
+        return RawFrame(index=position, timestamp=position / self.fps, gradients=gradients, contact=contact)
+
+    def __getstate__(self) -> dict:
+        # Memory-mapped files are reopened, not copied, in DataLoader worker processes.
+        state = self.__dict__.copy()
+        if self._npy_paths is not None:
+            state["gradients"] = state["contact"] = None
+        return state
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state)
+        if self._npy_paths is not None:
+            self.gradients, self.contact = (_load_npy(p) for p in self._npy_paths)
