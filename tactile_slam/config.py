@@ -86,6 +86,9 @@ class ContactConfig:
     height_percentile: float = 85.0
     final_erode: int | None = None
     min_contact_mm2: float = 500 * 0.0634**2
+    # Fill enclosed holes of the colour mask (a pressed ball's flat bottom keeps the
+    # background's colour); the public code does not. The height rule still applies.
+    fill_holes: bool = True
     # Pixels whose colour differs from the background by less than this skip the
     # calibration MLP (their gradient is exactly the background's, i.e. zero).
     mlp_skip_color_dist: float = 8.0
@@ -154,11 +157,22 @@ class LoopConfig:
 
 @dataclass
 class PoseGraphConfig:
-    """Pose-graph noise and solver (method.md section 7)."""
+    """Pose-graph noise and solver (method.md section 7; tactile_slam/posegraph)."""
 
     sigma_rot_rad: float = 0.01
     sigma_trans_m: float = 1e-4
     max_iters: int = 100
+    rel_tol: float = 1e-5
+    abs_tol: float = 1e-5
+    lambda_init: float = 1e-5
+    lambda_factor: float = 10.0
+    lambda_max: float = 1e5
+    # "none" | "huber" | "cauchy" | "gnc" (truncated least squares), on loop factors only
+    robust: str = "none"
+    robust_chi2: float = 16.81
+    gnc_mu_step: float = 1.4
+    gnc_max_iters: int = 100
+    reinit_merged: bool = True
 
 
 @dataclass
@@ -167,6 +181,14 @@ class ReconConfig:
 
     fusion_gate_mm: float = 3.0
     poisson: bool = True
+    watertight: bool = True  # False: trim Poisson to the data (partial scans)
+    min_weight: float = 0.05  # Poisson input: drop points this close to a contact edge
+    voxel_mm: float = 0.05
+    poisson_cell_mm: float = 0.1
+    poisson_min_depth: int = 8
+    poisson_max_depth: int = 11
+    trim_density_quantile: float = 0.02
+    trim_distance_mm: float = 0.5
 
 
 @dataclass

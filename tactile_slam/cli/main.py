@@ -9,6 +9,7 @@ import importlib
 import sys
 
 COMMAND_MODULES = (
+    "tactile_slam.cli.demo",
     "tactile_slam.cli.bench",
 )
 
@@ -24,7 +25,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return int(args.func(args) or 0)
+        rc = args.func(args)
+        return rc if isinstance(rc, int) else 0
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         # Errors carry a message that names the problem; show it without a traceback.
         print(f"tactile-slam {args.command}: error: {exc}", file=sys.stderr)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from tactile_slam.geometry.morphology import dilate, erode
+from tactile_slam.geometry.morphology import dilate, erode, fill_holes
 
 
 def colour_distance(bgr: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
@@ -20,10 +20,20 @@ def colour_distance(bgr: torch.Tensor, background: torch.Tensor) -> torch.Tensor
     return torch.linalg.vector_norm(bgr.float() - background.float(), dim=-1)
 
 
-def colour_mask(dist: torch.Tensor, threshold: float, dilate_size: int, erode_size: int) -> torch.Tensor:
+def colour_mask(
+    dist: torch.Tensor, threshold: float, dilate_size: int, erode_size: int, fill: bool = True
+) -> torch.Tensor:
     """Colour rule: ``dist > threshold``, dilated then eroded (neutral borders).
-    ``(B, H, W)`` float -> ``(B, H, W)`` bool."""
-    return erode(dilate(dist > threshold, dilate_size), erode_size, border_is_contact=True)
+
+    With ``fill`` (default; the public code does not) enclosed holes are filled: the
+    flat bottom of a pressed ball has the background's colour although it is in
+    contact. Real holes (an unpressed region inside a ring) are removed afterwards
+    by the height rule of :func:`contact_mask`.
+
+    ``(B, H, W)`` float -> ``(B, H, W)`` bool.
+    """
+    m = erode(dilate(dist > threshold, dilate_size), erode_size, border_is_contact=True)
+    return fill_holes(m) if fill else m
 
 
 def percentile(x: torch.Tensor, q: float) -> torch.Tensor:

@@ -141,7 +141,9 @@ class FrameBuilder:
         skip = cfg.contact.mlp_skip_color_dist
         changed = dilate(dist > skip, 5) if skip > 0 else None
         gradients = self.decoder(bgr, changed=changed)
-        colour = colour_mask(dist, cfg.contact.color_dist_threshold, cfg.contact.dilate, cfg.contact.erode)
+        colour = colour_mask(
+            dist, cfg.contact.color_dist_threshold, cfg.contact.dilate, cfg.contact.erode, cfg.contact.fill_holes
+        )
         return self._finish(gradients, colour, dilate(colour, cfg.contact.dilate), None, index, timestamp)
 
     def from_gradients(

@@ -66,3 +66,33 @@ def _use_cv2(mask: torch.Tensor, backend: str) -> bool:
     if backend == "auto":
         return mask.device.type == "cpu"
     return backend == "cv2"
+
+
+def fill_holes(mask: torch.Tensor, backend: str = "auto") -> torch.Tensor:
+    """Fill regions of ``False`` not connected to the image border (4-connectivity).
+
+    ``(B, H, W)`` bool -> same. On CPU one OpenCV flood fill per image; elsewhere a
+    geodesic reconstruction of the border-connected background by repeated 3x3
+    cross dilation until it stops changing.
+    """
+    if _use_cv2(mask, backend):
+        src = mask.to(torch.uint8).numpy()
+        out = np.empty_like(src)
+        for i in range(src.shape[0]):
+            pad = np.pad(src[i], 1, constant_values=0)
+            ff = pad.copy()
+            cv2.floodFill(ff, np.zeros((pad.shape[0] + 2, pad.shape[1] + 2), np.uint8), (0, 0), 2, flags=4)
+            out[i] = (ff[1:-1, 1:-1] != 2)
+        return torch.from_numpy(out).bool()
+    free = ~mask
+    outside = torch.zeros_like(mask)
+    outside[:, 0, :] = free[:, 0, :]
+    outside[:, -1, :] = free[:, -1, :]
+    outside[:, :, 0] |= free[:, :, 0]
+    outside[:, :, -1] |= free[:, :, -1]
+    cross = torch.tensor([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=torch.float32, device=mask.device)[None, None]
+    while True:
+        grown = (F.conv2d(outside.float().unsqueeze(1), cross, padding=1).squeeze(1) > 0) & free
+        if torch.equal(grown, outside):
+            return ~outside
+        outside = grown

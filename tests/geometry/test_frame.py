@@ -161,3 +161,19 @@ class TestRealPresses:
     def test_from_bgr_needs_decoder(self):
         with pytest.raises(InputError, match="calibration model"):
             FrameBuilder(Config()).from_bgr(torch.zeros(1, 240, 320, 3, dtype=torch.uint8))
+
+
+def test_ring_contact_keeps_unpressed_centre():
+    """Hole filling of the colour mask must not put an unpressed centre in contact."""
+    from tactile_slam.geometry.contact import contact_mask
+
+    from .surfaces import grid
+
+    r, c = grid()
+    rad = torch.sqrt(r**2 + c**2)
+    h = torch.where((rad > 20) & (rad < 45), torch.tensor(-10.0, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64))[None]
+    colour = torch.zeros(1, 240, 320, dtype=torch.bool)
+    colour[0] = rad < 47  # a filled colour mask
+    _, eroded = contact_mask(h, colour, 3.155, 85.0, 5)
+    assert not eroded[0][rad < 15].any()
+    assert eroded[0][(rad > 25) & (rad < 40)].all()

@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from tactile_slam.geometry.morphology import dilate, erode
+from tactile_slam.geometry.morphology import dilate, erode, fill_holes
 
 
 @pytest.mark.parametrize("size", [3, 5, 7, 15])
@@ -31,3 +31,15 @@ def test_single_pixel_dilation_is_square():
 def test_bad_backend():
     with pytest.raises(ValueError, match="backend"):
         dilate(torch.zeros(1, 4, 4, dtype=torch.bool), 3, backend="gpu")
+
+
+def test_fill_holes_backends_agree_and_keep_open_regions():
+    m = torch.zeros(2, 30, 40, dtype=torch.bool)
+    m[:, 5:20, 5:20] = True
+    m[:, 9:14, 9:14] = False  # enclosed hole -> filled
+    m[1, 0:10, 30:40] = True
+    m[1, 0:5, 33:37] = False  # touches the border -> stays open
+    cpu = fill_holes(m)
+    assert cpu[:, 9:14, 9:14].all()
+    assert not cpu[1, 0:5, 33:37].any()
+    torch.testing.assert_close(cpu, fill_holes(m, backend="torch"))
