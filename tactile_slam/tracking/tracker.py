@@ -1,0 +1,199 @@
+"""The tracker: NormalFlow from the current keyframe to each frame, lazy keyframes,
+sessions (method.md section 5).
+
+A pure algorithm object: state plus :meth:`Tracker.step`. It never reads files or
+times itself; the pipeline does that.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from typing import Any, Protocol
+
+import torch
+
+from tactile_slam.config import NormalFlowConfig, TrackingConfig
+from tactile_slam.geometry.frame import Frame
+from tactile_slam.registration.normalflow import prepare_reference, register_prepared
+from tactile_slam.registration.result import RegistrationResult
+from tactile_slam.tracking.keyframe import Keyframe
+
+INIT_MODES = ("constant_position", "constant_velocity")
+
+
+class Registrar(Protocol):
+    """Registers frames against a prepared reference (NormalFlow, or a test double)."""
+
+    def prepare(self, ref: Frame) -> Any: ...
+
+    def register(self, prepared: Any, tar: Frame, init_tar_T_ref: torch.Tensor) -> RegistrationResult: ...
+
+
+class NormalFlowRegistrar:
+    """:class:`Registrar` backed by NormalFlow with the tracking thresholds.
+
+    Args:
+        normalflow: solver settings; its CCS/SCR thresholds are replaced by ``tracking``'s.
+        tracking: CCS/SCR thresholds for tracking.
+    """
+
+    def __init__(self, normalflow: NormalFlowConfig, tracking: TrackingConfig):
+        self.config = replace(
+            normalflow, ccs_threshold=tracking.ccs_threshold, scr_threshold=tracking.scr_threshold
+        )
+
+    def prepare(self, ref: Frame):
+        return prepare_reference(ref, self.config)
+
+    def register(self, prepared, tar: Frame, init_tar_T_ref: torch.Tensor) -> RegistrationResult:
+        return register_prepared(prepared, tar, init_tar_T_ref, self.config)
+
+
+@dataclass
+class TrackStep:
+    """What :meth:`Tracker.step` reports for one frame.
+
+    Attributes:
+        index: the frame's video index.
+        in_contact: whether the frame was tracked at all.
+        kf_T_frame: ``(4, 4)`` float64 metres, the frame's sensor pose in its keyframe
+            (``None`` without contact).
+        keyframe_id / session: ids of the frame's keyframe and tracking session.
+        ccs / scr: quality scores of the accepted registration (NaN for keyframes
+            that start a session).
+        keyframes: keyframes emitted by this step, in id order (0, 1 or 2; a flushed
+            session tail is emitted by the first non-contact step).
+        is_keyframe: this frame itself became a keyframe.
+    """
+
+    index: int
+    in_contact: bool
+    kf_T_frame: torch.Tensor | None = None
+    keyframe_id: int | None = None
+    session: int | None = None
+    ccs: float = float("nan")
+    scr: float = float("nan")
+    keyframes: list[Keyframe] = field(default_factory=list)
+    is_keyframe: bool = False
+
+
+def _eye() -> torch.Tensor:
+    return torch.eye(4, dtype=torch.float64)
+
+
+class Tracker:
+    """Lazy-keyframe tracker.
+
+    Args:
+        config: tracking settings (thresholds are applied by the registrar; here
+            ``flush_session_tail`` and ``init``).
+        registrar: registration backend.
+    """
+
+    def __init__(self, config: TrackingConfig, registrar: Registrar):
+        if config.init not in INIT_MODES:
+            raise ValueError(f"tracking.init must be one of {INIT_MODES}, got {config.init!r}")
+        self.config = config
+        self.registrar = registrar
+        self.next_keyframe_id = 0
+        self.next_session = 0
+        self.kf: Keyframe | None = None
+        self.kf_prepared: Any = None
+        self.prev: Frame | None = None
+        self.kf_T_prev = _eye()
+        self.kf_T_prevprev: torch.Tensor | None = None
+        self.prev_is_keyframe = False
+        self.prev_in_contact = False
+
+    # ----------------------------------------------------------------- helpers
+    def _make_keyframe(self, frame: Frame, new_session: bool, prev_T_kf: torch.Tensor) -> Keyframe:
+        if new_session:
+            self.next_session += 1
+        session = self.next_session - 1
+        kf = Keyframe(self.next_keyframe_id, session, frame, new_session, prev_T_kf.clone())
+        self.next_keyframe_id += 1
+        self.kf = kf
+        self.kf_prepared = self.registrar.prepare(frame)
+        return kf
+
+    def _init_guess(self) -> torch.Tensor:
+        """Initial tar_T_ref = inv(predicted kf_T_frame)."""
+        pred = self.kf_T_prev
+        if self.config.init == "constant_velocity" and self.kf_T_prevprev is not None:
+            pred = self.kf_T_prev @ torch.linalg.inv(self.kf_T_prevprev) @ self.kf_T_prev
+        return torch.linalg.inv(pred)
+
+    def _register(self, frame: Frame, init: torch.Tensor) -> RegistrationResult:
+        return self.registrar.register(self.kf_prepared, frame, init[None])[0]
+
+    def _flush_tail(self) -> list[Keyframe]:
+        if not self.config.flush_session_tail or self.prev is None or self.prev_is_keyframe or not self.prev_in_contact:
+            return []
+        kf = self._make_keyframe(self.prev, False, self.kf_T_prev)
+        self.kf_T_prev, self.kf_T_prevprev, self.prev_is_keyframe = _eye(), None, True
+        return [kf]
+
+    # ----------------------------------------------------------------- API
+    def step(self, frame: Frame) -> TrackStep:
+        """Track one frame (``Frame`` with ``B = 1``)."""
+        if len(frame) != 1:
+            raise ValueError(f"Tracker.step takes one frame, got a batch of {len(frame)}")
+        index = int(frame.index[0])
+        if not bool(frame.in_contact[0]):
+            emitted = self._flush_tail()
+            self.prev_in_contact = False
+            self.prev = None
+            return TrackStep(index=index, in_contact=False, keyframes=emitted)
+
+        if not self.prev_in_contact:
+            kf = self._new_session(frame)
+            return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf], is_keyframe=True))
+
+        res = self._register(frame, self._init_guess())
+        if bool(res.ok):
+            return self._tracked(frame, res, [])
+        if self.prev_is_keyframe:
+            kf = self._new_session(frame)
+            return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf], is_keyframe=True))
+        # lazy keyframe rule: the previous frame becomes a keyframe, then retry
+        prev_kf = self._make_keyframe(self.prev, False, self.kf_T_prev)
+        old_kf_T_prev = self.kf_T_prev
+        self.kf_T_prevprev = (
+            torch.linalg.inv(old_kf_T_prev) @ self.kf_T_prevprev if self.kf_T_prevprev is not None else None
+        )
+        self.kf_T_prev = _eye()
+        res = self._register(frame, self._init_guess())
+        if bool(res.ok):
+            return self._tracked(frame, res, [prev_kf])
+        kf = self._new_session(frame)
+        return self._done(
+            frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[prev_kf, kf], is_keyframe=True)
+        )
+
+    def finish(self) -> list[Keyframe]:
+        """End of stream: flush the last session's tail; returns the emitted keyframes."""
+        emitted = self._flush_tail()
+        self.prev, self.prev_in_contact = None, False
+        return emitted
+
+    # ----------------------------------------------------------------- internals
+    def _new_session(self, frame: Frame) -> Keyframe:
+        return self._make_keyframe(frame, True, _eye())
+
+    def _tracked(self, frame: Frame, res: RegistrationResult, emitted: list[Keyframe]) -> TrackStep:
+        kf_T_frame = torch.linalg.inv(res.tar_T_ref[0].to(torch.float64).cpu())
+        self.kf_T_prevprev = self.kf_T_prev
+        self.kf_T_prev = kf_T_frame
+        self.prev_is_keyframe = False
+        self.prev, self.prev_in_contact = frame, True
+        return TrackStep(
+            int(frame.index[0]), True, kf_T_frame, self.kf.id, self.kf.session,
+            float(res.ccs[0]), float(res.scr[0]), emitted, False,
+        )
+
+    def _done(self, frame: Frame, step: TrackStep) -> TrackStep:
+        """Bookkeeping after the frame itself became a (session-head) keyframe."""
+        self.kf_T_prev, self.kf_T_prevprev = _eye(), None
+        self.prev_is_keyframe = True
+        self.prev, self.prev_in_contact = frame, True
+        return step

@@ -1,0 +1,157 @@
+"""Keyframe and session logic on crafted sequences with a scripted registrar.
+
+Frame i has a known sensor pose X_i (object frame); the fake registrar returns the
+exact tar_T_ref = inv(X_tar) X_ref unless a scripted rule says the pair fails. The
+tracker's composed poses must then equal the truth, and its keyframes and sessions
+must follow method.md section 5.
+"""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from tactile_slam.config import TrackingConfig
+from tactile_slam.geometry.frame import Frame
+from tactile_slam.registration.result import RegistrationResult
+from tactile_slam.tracking.tracker import Tracker
+
+
+def pose(i: int) -> torch.Tensor:
+    """Sensor pose of frame i: a constant body-frame step (2 degrees about z, 1 mm in x,
+    0.5 mm in y) applied i times."""
+    a = math.radians(2.0)
+    step = torch.eye(4, dtype=torch.float64)
+    step[:2, :2] = torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    step[:2, 3] = torch.tensor([1e-3, 5e-4])
+    return torch.linalg.matrix_power(step, i)
+
+
+def frame(i: int, contact: bool = True) -> Frame:
+    z = torch.zeros(1, 4, 4)
+    return Frame(
+        gradients=torch.zeros(1, 4, 4, 2), height=z, contact=torch.zeros(1, 4, 4, dtype=torch.bool),
+        normals=torch.zeros(1, 4, 4, 3), curvature=z, in_contact=torch.tensor([contact]),
+        index=torch.tensor([i]), timestamp=torch.tensor([i / 25.0], dtype=torch.float64), mm_per_px=0.0634,
+    )
+
+
+class ScriptedRegistrar:
+    def __init__(self, fails):
+        self.fails = fails  # (ref_index, tar_index) -> bool
+        self.calls: list[tuple[int, int, torch.Tensor]] = []
+
+    def prepare(self, ref: Frame):
+        return int(ref.index[0])
+
+    def register(self, ref_index, tar: Frame, init):
+        tar_index = int(tar.index[0])
+        self.calls.append((ref_index, tar_index, init[0].clone()))
+        ok = not self.fails(ref_index, tar_index)
+        t = torch.linalg.inv(pose(tar_index)) @ pose(ref_index)
+        one = lambda v, dt=torch.float64: torch.tensor([v], dtype=dt)  # noqa: E731
+        return RegistrationResult(t[None], one(0.9 if ok else 0.1), one(0.9), one(100, torch.int64),
+                                  one(7, torch.int64), one(True, torch.bool), one(ok, torch.bool))
+
+
+def run(contacts, fails=lambda r, t: False, **cfg):
+    reg = ScriptedRegistrar(fails)
+    tr = Tracker(TrackingConfig(**cfg), reg)
+    steps = [tr.step(frame(i, c)) for i, c in enumerate(contacts)]
+    tail = tr.finish()
+    kfs = [k for s in steps for k in s.keyframes] + tail
+    return steps, kfs, reg
+
+
+def check_poses(steps, kfs):
+    """kf_T_frame composed with the keyframe chain reproduces the true relative poses."""
+    by_id = {k.id: k for k in kfs}
+    head_pose = {}
+    kf_pose = {}
+    for k in sorted(kfs, key=lambda k: k.id):
+        if k.new_session:
+            kf_pose[k.id] = torch.eye(4, dtype=torch.float64)
+            head_pose[k.session] = k.video_index
+        else:
+            prev = max(j for j in kf_pose if by_id[j].session == k.session)
+            kf_pose[k.id] = kf_pose[prev] @ k.prev_T_kf
+    for s in steps:
+        if not s.in_contact:
+            continue
+        est = kf_pose[s.keyframe_id] @ s.kf_T_frame
+        true = torch.linalg.inv(pose(head_pose[s.session])) @ pose(s.index)
+        torch.testing.assert_close(est, true)
+
+
+def test_single_session_no_failures():
+    steps, kfs, _ = run([True] * 6)
+    assert [k.id for k in kfs] == [0, 1]
+    assert kfs[0].new_session and kfs[0].video_index == 0
+    assert not kfs[1].new_session and kfs[1].video_index == 5  # flushed tail at end of stream
+    check_poses(steps, kfs)
+
+
+def test_contact_loss_starts_new_session_and_flushes_tail():
+    contacts = [True] * 4 + [False] * 2 + [True] * 3
+    steps, kfs, _ = run(contacts)
+    assert [(k.video_index, k.session, k.new_session) for k in kfs] == [
+        (0, 0, True), (3, 0, False), (6, 1, True), (8, 1, False)]
+    assert steps[4].keyframes and steps[4].keyframes[0].video_index == 3
+    assert steps[5].keyframes == [] and steps[5].kf_T_frame is None
+    check_poses(steps, kfs)
+
+
+def test_no_tail_flush_when_disabled():
+    _, kfs, _ = run([True] * 4 + [False] + [True] * 2, flush_session_tail=False)
+    assert [k.video_index for k in kfs] == [0, 5]
+
+
+def test_lazy_keyframe_then_retry_succeeds():
+    # a pair fails when the frames are more than 2 apart
+    steps, kfs, reg = run([True] * 8, fails=lambda r, t: t - r > 2)
+    assert [k.video_index for k in kfs if not k.new_session][:2] == [2, 4]
+    assert all(k.session == 0 for k in kfs)
+    s3 = steps[3]
+    assert [k.video_index for k in s3.keyframes] == [2] and not s3.is_keyframe
+    # the retry against the new keyframe starts from the (constant-position) identity
+    assert (reg.calls[3][0], reg.calls[3][1]) == (2, 3)
+    torch.testing.assert_close(reg.calls[3][2], torch.eye(4, dtype=torch.float64))
+    check_poses(steps, kfs)
+
+
+def test_retry_fails_new_session_two_keyframes_in_one_step():
+    steps, kfs, _ = run([True] * 6, fails=lambda r, t: t == 3)
+    s = steps[3]
+    assert [(k.video_index, k.new_session) for k in s.keyframes] == [(2, False), (3, True)]
+    assert s.is_keyframe and s.session == 1
+    check_poses(steps, kfs)
+
+
+def test_failure_right_after_keyframe_starts_new_session():
+    steps, kfs, _ = run([True] * 4, fails=lambda r, t: (r, t) == (0, 1))
+    assert steps[1].is_keyframe and steps[1].keyframes[0].new_session and steps[1].session == 1
+    check_poses(steps, kfs)
+
+
+def test_stream_ending_mid_contact_keeps_tail():
+    steps, kfs, _ = run([False, True, True, True])
+    assert kfs[-1].video_index == 3 and not kfs[-1].new_session
+
+
+def test_constant_velocity_init_extrapolates():
+    _, _, reg = run([True] * 4, init="constant_velocity")
+    ref, tar, init = reg.calls[-1]  # frame 3 against keyframe 0
+    expected = torch.linalg.inv(torch.linalg.inv(pose(0)) @ pose(2) @ torch.linalg.inv(pose(1)) @ pose(2))
+    torch.testing.assert_close(init, expected)
+    true = torch.linalg.inv(pose(3)) @ pose(0)
+    torch.testing.assert_close(init, true)  # exact for a constant-velocity motion
+
+
+def test_bad_config_and_batch():
+    with pytest.raises(ValueError, match="tracking.init"):
+        Tracker(TrackingConfig(init="magic"), ScriptedRegistrar(lambda r, t: False))
+    tr = Tracker(TrackingConfig(), ScriptedRegistrar(lambda r, t: False))
+    with pytest.raises(ValueError, match="one frame"):
+        tr.step(Frame.cat([frame(0), frame(1)]))
