@@ -112,9 +112,10 @@ class NormalFlowConfig:
     GelSLAM rule) or ``"random"`` (old NormalFlow: random contact pixels, seeded by
     ``seed``). ``check_scores`` False skips the CCS/SCR test (old NormalFlow).
     ``jacobian``: ``"analytic"`` or ``"autograd"`` (torch.func); both agree.
-    ``lm_damping`` is a Marquardt factor on the Jacobi-scaled normal equations;
-    ``degenerate_eig`` is the smallest eigenvalue of those (unit-diagonal) equations
-    below which a pair is reported degenerate (failed).
+    ``lm_damping`` is a Marquardt factor on the normal equations. A pair is
+    degenerate (failed) when the smallest-to-largest eigenvalue ratio of its normal
+    equations, translations scaled by the samples' RMS spread, is below
+    ``degenerate_eig`` (0 disables the test).
     """
 
     n_samples: int | None = 3000
@@ -129,7 +130,7 @@ class NormalFlowConfig:
     check_scores: bool = True
     jacobian: str = "analytic"
     lm_damping: float = 0.0
-    degenerate_eig: float = 1e-8
+    degenerate_eig: float = 1e-6
     seed: int = 0
 
 

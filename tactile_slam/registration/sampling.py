@@ -1,0 +1,97 @@
+"""Reference sample selection for NormalFlow (method.md section 4.2).
+
+Every rule returns padded row-major pixel indices ``(B, K)`` and a validity mask, so
+references with different contact sizes share one batch.
+"""
+
+from __future__ import annotations
+
+import torch
+
+SELECTIONS = ("topk", "threshold", "random")
+
+
+def mask_to_indices(mask: torch.Tensor, k: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row-major indices of the true entries of each row, padded.
+
+    Args:
+        mask: ``(B, N)`` bool.
+        k: number of columns (default: the largest row count, at least 1); rows with
+            more true entries keep their first ``k``.
+
+    Returns:
+        ``(idx (B, K) int64, valid (B, K) bool)``; padding has index 0, valid False.
+    """
+    b, n = mask.shape
+    count = mask.sum(dim=1)
+    if k is None:
+        k = max(int(count.max()) if b else 0, 1)
+    pos = mask.cumsum(dim=1) - 1
+    slot = torch.where(mask & (pos < k), pos, torch.full_like(pos, k))
+    idx = torch.zeros((b, k + 1), dtype=torch.int64, device=mask.device)
+    idx.scatter_(1, slot, torch.arange(n, device=mask.device).expand(b, n))
+    valid = torch.arange(k, device=mask.device)[None, :] < count.clamp(max=k)[:, None]
+    return torch.where(valid, idx[:, :k], torch.zeros_like(idx[:, :k])), valid
+
+
+def top_k_mask(score: torch.Tensor, k: int) -> torch.Tensor:
+    """Exactly ``min(k, #(score >= 0))`` largest non-negative entries per row, ties
+    broken by the lower index. Negative scores are never selected.
+
+    ``(B, N)`` -> ``(B, N)`` bool.
+    """
+    n = score.shape[1]
+    if k >= n:
+        return score >= 0
+    kth = torch.topk(score, k, dim=1, sorted=False).values.min(dim=1, keepdim=True).values
+    above = score > kth
+    tie = score == kth
+    need = k - above.sum(dim=1, keepdim=True)
+    chosen = above | (tie & (tie.cumsum(dim=1) <= need))
+    return torch.where(kth >= 0, chosen, score >= 0)
+
+
+def select_samples(
+    curvature: torch.Tensor,
+    contact: torch.Tensor,
+    n_samples: int | None,
+    rule: str = "topk",
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Reference pixels NormalFlow optimises over.
+
+    Rules:
+        ``"topk"``: the ``n_samples`` contact pixels of highest |L|, ties by row-major
+            index (all contact pixels when fewer); deterministic.
+        ``"threshold"``: the public GelSLAM rule: |L| >= (n-th largest |L| over the
+            image) + 1e-6 (at most n - 1 samples; none when n pixels sit at the clip).
+        ``"random"``: ``n_samples`` contact pixels drawn uniformly (old NormalFlow).
+
+    Args:
+        curvature: ``(B, H, W)`` reference curvature L (zero outside contact).
+        contact: ``(B, H, W)`` bool eroded contact mask.
+        n_samples: sample count, ``None`` for every contact pixel.
+        generator: CPU random generator for ``"random"``.
+
+    Returns:
+        ``(idx (B, K) int64 row-major pixel indices, valid (B, K) bool)``, row-major order.
+    """
+    if rule not in SELECTIONS:
+        raise ValueError(f"sample selection must be one of {SELECTIONS}, got {rule!r}")
+    b = curvature.shape[0]
+    a = curvature.reshape(b, -1).abs()
+    c = contact.reshape(b, -1)
+    if n_samples is None:
+        return mask_to_indices(c)
+    if n_samples < 1:
+        raise ValueError(f"n_samples must be >= 1 or None, got {n_samples}")
+    if rule == "topk":
+        mask = top_k_mask(torch.where(c, a, torch.full_like(a, -1.0)), n_samples)
+    elif rule == "threshold":
+        k = min(n_samples, a.shape[1])
+        tau = torch.topk(a, k, dim=1).values[:, -1:] + 1e-6
+        mask = a >= tau
+    else:
+        r = torch.rand(a.shape, generator=generator, dtype=torch.float64).to(a.device)
+        mask = top_k_mask(torch.where(c, r, torch.full_like(r, -1.0)), n_samples)
+    return mask_to_indices(mask)
