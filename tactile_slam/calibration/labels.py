@@ -1,0 +1,311 @@
+"""Automatic contact-circle labels for ball presses, label files and overlay images.
+
+Detection (no model needed, no thresholds tuned to one data set):
+
+1. colour distance ``d = ||blur(img - background)||``; a press's *changed region* is the
+   largest connected set of pixels whose ``d`` exceeds the image's own noise level
+   (median + ``noise_sigmas`` robust standard deviations of ``d``, the press covering a
+   minority of the image);
+2. rays are cast from the region's ``d``-weighted centroid; along each ray ``d`` peaks at
+   the **contact rim**: the gel follows the sphere inside the contact, so its slope (and
+   colour change) grows up to the rim and decays outside it;
+3. a circle is fitted to the per-ray peaks (algebraic fit, trimmed of outliers); rays
+   that leave the image before their peak are dropped, so presses cut by the border keep
+   an unbiased centre; steps 2-3 repeat from the new centre.
+
+A label is flagged unreliable (kept in the file, never trained on) when too little of
+its rim is visible, the rim is not circular, or it contradicts the ball geometry: a
+contact radius ``a`` must be below the ball radius ``R`` and imply an indentation
+``R - sqrt(R^2 - a^2)`` no deeper than the sensor's maximum.
+
+Label files are CSV with header ``experiment_reldir,cx,cy,radius`` (pixels, ``cx`` the
+column, ``cy`` the row) and optional ``reliable`` (1/0) and ``reason`` columns. Rows of a
+hand-edited file override detection for the presses they list.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet
+
+LABEL_COLUMNS = ("experiment_reldir", "cx", "cy", "radius")
+
+
+class NoContactError(CalibrationDataError):
+    """A press image shows no contact that could be labelled."""
+
+
+@dataclass(frozen=True)
+class PressLabel:
+    """Contact circle of one press in pixels (``cx`` column, ``cy`` row, ``radius``).
+
+    ``reliable`` is False when the label must not be trained on; ``reason`` says why.
+    ``source`` is ``"auto"`` (detected) or ``"file"`` (read from a labels file).
+    ``visible`` is the fraction of the rim inside the image, ``residual_px`` the median
+    distance of the rim points to the circle (both NaN for file labels).
+    """
+
+    reldir: str
+    cx: float
+    cy: float
+    radius: float
+    reliable: bool = True
+    reason: str = ""
+    source: str = "auto"
+    visible: float = math.nan
+    residual_px: float = math.nan
+
+
+@dataclass(frozen=True)
+class DetectionConfig:
+    """Detector settings; all but the geometry are dimensionless or relative.
+
+    ``noise_sigmas``: changed-pixel threshold in robust noise standard deviations.
+    ``n_rays``: rays cast from the centre. ``min_visible``: least fraction of the rim
+    inside the image for a reliable label. ``max_residual_px``: largest median distance
+    of rim points to the fitted circle. ``min_radius_px``: smallest reliable radius.
+    """
+
+    noise_sigmas: float = 8.0
+    blur_sigma: float = 1.0
+    n_rays: int = 180
+    iterations: int = 4
+    min_visible: float = 0.6
+    max_residual_px: float = 3.0
+    min_radius_px: float = 8.0
+
+
+def _fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+    """Algebraic (Kasa) least-squares circle through points ``(N,)``, ``(N,)``."""
+    a = np.stack([x, y, np.ones_like(x)], axis=1)
+    sol = np.linalg.lstsq(a, x * x + y * y, rcond=None)[0]
+    cx, cy = sol[0] / 2.0, sol[1] / 2.0
+    return float(cx), float(cy), float(math.sqrt(max(sol[2] + cx * cx + cy * cy, 0.0)))
+
+
+def _trimmed_circle(x: np.ndarray, y: np.ndarray, rounds: int = 3) -> tuple[float, float, float, float]:
+    """Circle fit that drops points beyond 2.5 robust sigmas (min 1 px); returns ``cx, cy, r, median residual``."""
+    keep = np.ones(x.shape, dtype=bool)
+    for _ in range(rounds):
+        cx, cy, r = _fit_circle(x[keep], y[keep])
+        res = np.abs(np.hypot(x - cx, y - cy) - r)
+        new_keep = res < max(2.5 * 1.4826 * float(np.median(res[keep])), 1.0)
+        if new_keep.sum() < 3:
+            break
+        keep = new_keep
+    cx, cy, r = _fit_circle(x[keep], y[keep])
+    res = np.abs(np.hypot(x[keep] - cx, y[keep] - cy) - r)
+    return cx, cy, r, float(np.median(res))
+
+
+def indentation_px(radius: float, ball_radius_px: float) -> float:
+    """Sphere-cap depth ``R - sqrt(R^2 - a^2)`` (px) of a contact of radius ``a``; inf if ``a >= R``."""
+    if radius >= ball_radius_px:
+        return math.inf
+    return ball_radius_px - math.sqrt(ball_radius_px**2 - radius**2)
+
+
+def detect_contact_circle(
+    image: np.ndarray,
+    background: np.ndarray,
+    ball_radius_px: float,
+    max_indentation_px: float,
+    cfg: DetectionConfig = DetectionConfig(),
+    reldir: str = "",
+) -> PressLabel:
+    """Detect the contact circle of a ball press.
+
+    Args:
+        image: ``(H, W, 3)`` BGR press image (uint8 or float).
+        background: ``(H, W, 3)`` BGR background, same size.
+        ball_radius_px: ball radius in pixels.
+        max_indentation_px: deepest plausible indentation in pixels.
+        cfg: detector settings.
+        reldir: press name carried into the label and error messages.
+
+    Returns:
+        The label; ``reliable`` False with a ``reason`` when it fails a check.
+
+    Raises:
+        NoContactError: no changed region large enough for a 1-px-deep press.
+        ValueError: mismatched or non-finite inputs.
+    """
+    if image.shape != background.shape or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"image {image.shape} and background {background.shape} must both be (H, W, 3)")
+    diff = image.astype(np.float32) - background.astype(np.float32)
+    if not np.isfinite(diff).all():
+        raise ValueError(f"press {reldir}: image or background has non-finite values")
+    h, w = diff.shape[:2]
+    dist = np.linalg.norm(cv2.GaussianBlur(diff, (0, 0), cfg.blur_sigma), axis=2).astype(np.float32)
+    med = float(np.median(dist))
+    spread = 1.4826 * float(np.median(np.abs(dist - med)))
+    threshold = med + cfg.noise_sigmas * max(spread, 0.5)
+    changed = cv2.morphologyEx((dist > threshold).astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(changed, connectivity=8)
+    min_area = 2.0 * math.pi * ball_radius_px  # contact area of a 1-px-deep press: pi * (2 R * 1)
+    if n < 2 or stats[1:, cv2.CC_STAT_AREA].max() < min_area:
+        largest = 0 if n < 2 else int(stats[1:, cv2.CC_STAT_AREA].max())
+        raise NoContactError(
+            f"press {reldir or '?'}: no visible contact (largest changed region {largest} px < {min_area:.0f} px "
+            f"at colour distance > {threshold:.1f}); remove it from catalog.csv or give its label in a labels file"
+        )
+    region = lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    wgt = np.where(region, dist, 0.0)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    cx, cy = float((wgt * xs).sum() / wgt.sum()), float((wgt * ys).sum() / wgt.sum())
+
+    angles = np.linspace(0.0, 2.0 * math.pi, cfg.n_rays, endpoint=False)
+    radii = np.arange(1.0, ball_radius_px, 0.5, dtype=np.float32)
+    cos, sin = np.cos(angles)[:, None], np.sin(angles)[:, None]
+    r, visible, residual = math.nan, 0.0, math.nan
+    for _ in range(cfg.iterations):
+        rx = (cx + cos * radii).astype(np.float32)
+        ry = (cy + sin * radii).astype(np.float32)
+        prof = cv2.remap(dist, rx, ry, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-1.0)
+        inside = (rx >= 0) & (rx <= w - 1) & (ry >= 0) & (ry <= h - 1)
+        peak = prof.argmax(axis=1)
+        # a ray counts when it stays in the image a few px beyond its peak, and the peak
+        # is interior to the search range and above the noise threshold
+        beyond = np.minimum(peak + int(2.0 / 0.5), radii.size - 1)
+        in_until = np.cumprod(inside, axis=1)[np.arange(cfg.n_rays), beyond].astype(bool)
+        ok = in_until & (peak > 0) & (peak < radii.size - 1) & (prof[np.arange(cfg.n_rays), peak] > threshold)
+        visible = float(ok.mean())
+        if ok.sum() < 8:
+            break
+        px = rx[np.arange(cfg.n_rays), peak][ok].astype(np.float64)
+        py = ry[np.arange(cfg.n_rays), peak][ok].astype(np.float64)
+        cx, cy, r, residual = _trimmed_circle(px, py)
+    if not math.isfinite(r):
+        raise NoContactError(
+            f"press {reldir or '?'}: no contact rim found (only {visible:.0%} of rays peak inside the image)"
+        )
+    reasons = []
+    if visible < cfg.min_visible:
+        reasons.append(f"only {visible:.0%} of the rim is inside the image")
+    if residual > cfg.max_residual_px:
+        reasons.append(f"rim is not circular (median residual {residual:.1f} px)")
+    if r < cfg.min_radius_px:
+        reasons.append(f"contact radius {r:.1f} px < {cfg.min_radius_px:g} px")
+    depth = indentation_px(r, ball_radius_px)
+    if depth > max_indentation_px:
+        reasons.append(
+            f"contact radius {r:.1f} px implies indentation {depth:.1f} px > max {max_indentation_px:.1f} px"
+        )
+    return PressLabel(reldir, cx, cy, r, not reasons, "; ".join(reasons), "auto", visible, residual)
+
+
+def read_labels(path: str | Path) -> dict[str, PressLabel]:
+    """Read a labels CSV (``experiment_reldir,cx,cy,radius[,reliable][,reason]``) keyed by reldir."""
+    path = Path(path)
+    if not path.is_file():
+        raise CalibrationDataError(f"labels file not found: {path}")
+    with path.open(newline="") as f:
+        reader = csv.DictReader(f)
+        fields = [c.strip() for c in (reader.fieldnames or [])]
+        if fields[:4] != list(LABEL_COLUMNS):
+            raise CalibrationDataError(f"{path}: header must start with {','.join(LABEL_COLUMNS)}, got {fields}")
+        out = {}
+        for i, row in enumerate(reader, start=2):
+            row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
+            try:
+                cx, cy, rad = float(row["cx"]), float(row["cy"]), float(row["radius"])
+            except ValueError as exc:
+                raise CalibrationDataError(f"{path}:{i}: cx, cy, radius must be numbers: {row}") from exc
+            if not all(map(math.isfinite, (cx, cy, rad))) or rad <= 0:
+                raise CalibrationDataError(f"{path}:{i}: need finite cx, cy and radius > 0, got {row}")
+            reliable = row.get("reliable", "1") in ("", "1", "true", "True", "yes")
+            reldir = row["experiment_reldir"]
+            out[reldir] = PressLabel(reldir, cx, cy, rad, reliable, row.get("reason", ""), "file")
+    return out
+
+
+def write_labels(path: str | Path, labels: list[PressLabel]) -> Path:
+    """Write labels as CSV: ``experiment_reldir,cx,cy,radius,reliable,reason,source``."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with path.open("w", newline="") as f:
+        wr = csv.writer(f)
+        wr.writerow([*LABEL_COLUMNS, "reliable", "reason", "source"])
+        for lb in labels:
+            wr.writerow([lb.reldir, f"{lb.cx:.2f}", f"{lb.cy:.2f}", f"{lb.radius:.2f}", int(lb.reliable),
+                         lb.reason, lb.source])
+    return path
+
+
+def label_presses(
+    calib: CalibrationSet,
+    mm_per_px: float,
+    max_indentation_mm: float,
+    overrides: dict[str, PressLabel] | None = None,
+    cfg: DetectionConfig = DetectionConfig(),
+) -> list[PressLabel]:
+    """Label every press of ``calib`` in catalog order.
+
+    Presses listed in ``overrides`` (e.g. from :func:`read_labels`) take that label and
+    are not detected; the others are detected with :func:`detect_contact_circle`.
+
+    Raises:
+        CalibrationDataError: an override names a press not in the catalog.
+        NoContactError: a press without override shows no contact.
+    """
+    overrides = overrides or {}
+    unknown = sorted(set(overrides) - {p.reldir for p in calib.presses})
+    if unknown:
+        raise CalibrationDataError(f"labels name presses not in the catalog: {unknown[:5]}")
+    out = []
+    for press in calib.presses:
+        if press.reldir in overrides:
+            out.append(overrides[press.reldir])
+            continue
+        out.append(
+            detect_contact_circle(
+                calib.image(press), calib.background, press.ball_radius_px(mm_per_px),
+                max_indentation_mm / mm_per_px, cfg, press.reldir,
+            )
+        )
+    return out
+
+
+def draw_label(image: np.ndarray, label: PressLabel, margin_px: float = 4.0) -> np.ndarray:
+    """Copy of a ``(H, W, 3)`` uint8 image with the circle (green: reliable, red: flagged),
+    the trained disc (radius - margin, thin) and the centre drawn in."""
+    out = image.copy()
+    colour = (0, 200, 0) if label.reliable else (0, 0, 255)
+    shift = 4  # sub-pixel drawing: coordinates in 1/16 px
+    c = (round(label.cx * 16), round(label.cy * 16))
+    cv2.circle(out, c, round(label.radius * 16), colour, 1, cv2.LINE_AA, shift)
+    if label.radius > margin_px:
+        cv2.circle(out, c, round((label.radius - margin_px) * 16), (255, 255, 255), 1, cv2.LINE_AA, shift)
+    cv2.drawMarker(out, (round(label.cx), round(label.cy)), colour, cv2.MARKER_CROSS, 7, 1)
+    return out
+
+
+def write_overlays(calib: CalibrationSet, labels: list[PressLabel], out_dir: str | Path,
+                   columns: int = 6, margin_px: float = 4.0) -> Path:
+    """Write ``out_dir/<reldir with '/' as '_'>.png`` per press and ``out_dir/overview.png``,
+    a grid of half-size tiles captioned with the press name and radius; returns the overview path."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tiles = []
+    for lb in labels:
+        img = draw_label(calib.image(calib.press(lb.reldir)), lb, margin_px)
+        cv2.imwrite(str(out_dir / f"{lb.reldir.replace('/', '_')}.png"), img)
+        tile = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
+        text = f"{lb.reldir} r={lb.radius:.1f}" + ("" if lb.reliable else " FLAGGED")
+        cv2.putText(tile, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
+                    (255, 255, 255) if lb.reliable else (0, 0, 255), 1, cv2.LINE_AA)
+        tiles.append(tile)
+    while len(tiles) % columns:
+        tiles.append(np.zeros_like(tiles[0]))
+    grid = np.vstack([np.hstack(tiles[i:i + columns]) for i in range(0, len(tiles), columns)])
+    path = out_dir / "overview.png"
+    cv2.imwrite(str(path), grid)
+    return path
+
