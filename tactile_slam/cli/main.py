@@ -10,7 +10,9 @@ import sys
 
 COMMAND_MODULES = (
     "tactile_slam.cli.demo",
+    "tactile_slam.cli.run",
     "tactile_slam.cli.bench",
+    "tactile_slam.cli.calibrate",
 )
 
 

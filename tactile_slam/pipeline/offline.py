@@ -1,0 +1,237 @@
+"""The offline pipeline: owns the data loop, progress, timing and the output folder.
+
+``OfflinePipeline(source, config, out_dir, options).run()`` reads every frame, computes
+geometry in batches, tracks frame by frame, builds the keyframe map and writes the
+outputs described in :mod:`tactile_slam.pipeline.outputs`.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from tactile_slam.calibration.model import GradientDecoder, load_model
+from tactile_slam.config import Config
+from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError
+from tactile_slam.io.dataset import FrameBatch, iter_batches
+from tactile_slam.io.frames import FrameSource
+from tactile_slam.io.scan import check_background, mean_background
+from tactile_slam.pipeline.odometry import OdometryMap
+from tactile_slam.pipeline.outputs import frame_poses, main_group_poses, write_json, write_tum
+from tactile_slam.pipeline.visualizer import NullVisualizer
+from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
+from tactile_slam.tracking.keyframe import Keyframe
+from tactile_slam.tracking.tracker import NormalFlowRegistrar, Tracker
+
+METHODS = ("nf", "nf-kf")
+
+
+@dataclass
+class RunOptions:
+    """How to run.
+
+    Attributes:
+        method: ``"nf"`` (frame-to-frame NormalFlow, no keyframes: the old NormalFlow
+            with 5000 random samples and no checks) or ``"nf-kf"`` (the tracker).
+        device: torch device for geometry and registration.
+        model: calibration model path (default: the sensor's packaged model).
+        batch_size: frames per geometry batch.
+        progress: show a progress bar.
+    """
+
+    method: str = "nf-kf"
+    device: str = "cpu"
+    model: str | None = None
+    batch_size: int = 8
+    progress: bool = True
+
+
+@dataclass
+class RunResult:
+    poses: np.ndarray
+    poses_by_group: np.ndarray
+    frame_group: np.ndarray
+    keyframes: list[Keyframe]
+    stats: dict = field(default_factory=dict)
+
+
+class OfflinePipeline:
+    """Args:
+        source: frames (a recording or a stream).
+        config: settings; written back resolved to ``config.yaml``.
+        out_dir: output folder (created when the first result is written).
+        options: method, device, batching.
+        visualizer: receives frames and keyframes; :class:`NullVisualizer` by default.
+    """
+
+    def __init__(self, source: FrameSource, config: Config, out_dir: str | Path,
+                 options: RunOptions | None = None, visualizer: NullVisualizer | None = None):
+        self.source = source
+        self.config = config
+        self.out_dir = Path(out_dir)
+        self.options = options or RunOptions()
+        if self.options.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}, got {self.options.method!r}")
+        self.visualizer = visualizer or NullVisualizer()
+
+    # ------------------------------------------------------------------ set-up
+    def _builder(self, first: FrameBatch, frames) -> tuple[FrameBuilder, FrameBatch | None]:
+        """A frame builder, and the first batch still to process. For image input
+        without a known background, the first ``background_frames`` frames of the
+        stream become the background and are not tracked."""
+        if first.bgr is None:
+            return FrameBuilder(self.config), first
+        background = getattr(self.source, "background", None)
+        rest = first
+        if background is None:
+            n = self.config.sensor.background_frames
+            window, rest = [first], first
+            while sum(len(b) for b in window) < n:
+                nxt = next(frames, None)
+                if nxt is None:
+                    raise InputError(f"{self.source}: fewer frames than the {n}-frame background window")
+                window.append(nxt)
+            stack = torch.cat([b.bgr for b in window]).numpy()
+            background = mean_background(stack[:n])
+            if n >= 2 and not check_background(stack[:n]).ok:
+                warnings.warn(f"{self.source}: the background frames differ; was the gel touched?", stacklevel=2)
+            used = n - sum(len(b) for b in window[:-1])
+            rest = window[-1]._map(lambda x: x[used:]) if used < len(window[-1]) else None
+        path = self.options.model or self.config.sensor.resolved_model_path()
+        if path is None:
+            raise InputError(
+                f"no calibration model for sensor {self.config.sensor.name!r}: pass --model or set sensor.model_path"
+            )
+        model, _ = load_model(path, self.options.device)
+        bg = torch.as_tensor(np.asarray(background), dtype=torch.float32)
+        decoder = GradientDecoder(model, bg, self.config.contact.mlp_skip_color_dist)
+        return FrameBuilder(self.config, decoder), rest
+
+    def _tracker(self):
+        if self.options.method == "nf":
+            nf = replace(self.config.normalflow, n_samples=5000, selection="random", check_scores=False)
+            return FrameToFrameTracker(NormalFlowRegistrar(nf, self.config.tracking))
+        return Tracker(self.config.tracking, NormalFlowRegistrar(self.config.normalflow, self.config.tracking))
+
+    # ------------------------------------------------------------------ loop
+    def run(self) -> RunResult:
+        opts = self.options
+        frames = iter_batches(iter(self.source), opts.batch_size)
+        first = next(frames, None)
+        if first is None:
+            raise InputError(f"{self.source}: no frames to process")
+        builder, pending = self._builder(first, frames)
+        tracker = self._tracker()
+        backend = OdometryMap()
+        indices, kf_of, kf_T = [], [], []
+        keyframes: list[Keyframe] = []
+        t_geom, t_track = [], []
+        n_total = len(self.source) if hasattr(self.source, "__len__") else None
+        bar = tqdm(total=n_total, disable=not opts.progress, unit="frame", desc="tracking")
+        t_start = time.perf_counter()
+        error: BaseException | None = None
+
+        def emit(kfs):
+            for kf in kfs:
+                backend.add(kf)
+                keyframes.append(kf)
+                self.visualizer.on_keyframe(kf)
+
+        try:
+            batches = ([pending] if pending is not None else [])
+            for batch in _chain(batches, frames):
+                t0 = time.perf_counter()
+                fr = self._geometry(builder, batch)
+                t_geom.extend([(time.perf_counter() - t0) / len(batch)] * len(batch))
+                for i in range(len(fr)):
+                    one = fr[i]
+                    t0 = time.perf_counter()
+                    step = tracker.step(one)
+                    t_track.append(time.perf_counter() - t0)
+                    emit(step.keyframes)
+                    indices.append(step.index)
+                    kf_of.append(step.keyframe_id if step.in_contact else -1)
+                    kf_T.append(step.kf_T_frame.numpy() if step.kf_T_frame is not None else np.full((4, 4), np.nan))
+                    self.visualizer.on_frame(one, step)
+                bar.update(len(batch))
+            emit(tracker.finish())
+        except KeyboardInterrupt as exc:  # keep what was computed
+            error = exc
+        except (InputError, ValueError, RuntimeError) as exc:
+            error = exc
+        finally:
+            bar.close()
+        wall = time.perf_counter() - t_start
+        backend.finish()
+        result = self._write(indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, wall, error)
+        self.visualizer.close()
+        if error is not None and not isinstance(error, KeyboardInterrupt):
+            raise error
+        return result
+
+    def _geometry(self, builder: FrameBuilder, batch: FrameBatch) -> Frame:
+        batch = batch.to(self.options.device)
+        if batch.bgr is not None:
+            return builder.from_bgr(batch.bgr, batch.index, batch.timestamp)
+        return builder.from_gradients(batch.gradients, batch.contact, batch.index, batch.timestamp)
+
+    # ------------------------------------------------------------------ outputs
+    def _write(self, indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, wall, error) -> RunResult:
+        out = self.out_dir
+        n = len(indices)
+        contact_frames = sum(1 for k in kf_of if k >= 0)
+        if n and contact_frames == 0 and error is None:
+            raise InputError(f"{self.source}: no frame of {n} is in contact: nothing to track")
+        out.mkdir(parents=True, exist_ok=True)
+        # poses are indexed by video index: rows for skipped frames (background window) stay NaN
+        t = (max(indices) + 1) if indices else 0
+        kf_of_full = np.full(t, -1, dtype=np.int64)
+        kf_T_full = np.full((t, 4, 4), np.nan)
+        if n:
+            idx = np.asarray(indices)
+            kf_of_full[idx] = kf_of
+            kf_T_full[idx] = np.stack(kf_T)
+        by_group, groups = frame_poses(kf_of_full, kf_T_full, backend.start_T_kf, backend.group)
+        poses = main_group_poses(by_group, groups)
+        fps = float(getattr(self.source, "fps", self.config.sensor.fps) or self.config.sensor.fps)
+        np.save(out / "poses.npy", poses)
+        np.save(out / "poses_by_group.npy", by_group)
+        np.save(out / "frame_group.npy", groups)
+        write_tum(out / "trajectory_tum.txt", poses, np.arange(t) / fps)
+        write_json(out / "keyframes.json", [
+            {"id": k.id, "video_index": k.video_index, "session": k.session, "group": backend.group[k.id],
+             "new_session": k.new_session, "pose": backend.start_T_kf[k.id].tolist()}
+            for k in keyframes
+        ])
+        med = lambda xs: float(np.median(xs) * 1000) if xs else float("nan")  # noqa: E731
+        stats = {
+            "method": self.options.method,
+            "device": self.options.device,
+            "frames": n,
+            "contact_frames": contact_frames,
+            "frames_with_pose": int(np.isfinite(poses).all(axis=(1, 2)).sum()),
+            "keyframes": len(keyframes),
+            "sessions": len({k.session for k in keyframes}),
+            "groups": len(set(backend.group.values())),
+            "fps": n / wall if wall > 0 else float("nan"),
+            "wall_time_s": wall,
+            "timing_ms": {"geometry": med(t_geom), "tracking": med(t_track),
+                          "total": med([a + b for a, b in zip(t_geom, t_track)])},
+            "completed": error is None,
+        }
+        if error is not None:
+            stats["error"] = f"{type(error).__name__}: {error}"
+        write_json(out / "stats.json", stats)
+        self.config.save(out / "config.yaml")
+        return RunResult(poses, by_group, groups, keyframes, stats)
+
+
+def _chain(first: list, rest):
+    yield from first
+    yield from rest

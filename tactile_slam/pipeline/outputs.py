@@ -1,0 +1,86 @@
+"""Per-frame trajectories from keyframe poses, and the run's output files.
+
+Output folder (stable names; see ``docs/outputs.md``):
+
+* ``poses.npy`` (T, 4, 4) float64, metres: each video frame's sensor pose in the sensor
+  frame of the first contact frame of the *main* group (the group holding the first
+  contact frame); NaN rows for frames without contact or in a group not connected
+  to it.
+* ``poses_by_group.npy`` (T, 4, 4) and ``frame_group.npy`` (T,): every in-contact frame
+  in the frame of its own group's first contact frame, and that group id (-1: none).
+* ``trajectory_tum.txt``: the rows of ``poses.npy`` with a pose, TUM format
+  (timestamp from the frame rate, translation in metres, quaternion x y z w).
+* ``keyframes.json``, ``stats.json``, ``config.yaml``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from scipy.spatial.transform import Rotation
+
+
+def frame_poses(
+    keyframe_of: np.ndarray,
+    kf_T_frame: np.ndarray,
+    start_T_kf: dict[int, torch.Tensor],
+    group_of_kf: dict[int, int],
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame poses relative to the first contact frame of each frame's group.
+
+    Args:
+        keyframe_of: ``(T,)`` int keyframe id of each frame, ``-1`` without contact.
+        kf_T_frame: ``(T, 4, 4)`` frame pose in its keyframe (NaN without contact).
+        start_T_kf: keyframe id -> ``(4, 4)`` pose in its group's start frame.
+        group_of_kf: keyframe id -> group id.
+
+    Returns:
+        ``(poses (T, 4, 4), frame_group (T,))``; NaN / -1 for frames without contact.
+    """
+    t = len(keyframe_of)
+    poses = np.full((t, 4, 4), np.nan)
+    frame_group = np.full(t, -1, dtype=np.int64)
+    has = keyframe_of >= 0
+    if not has.any():
+        return poses, frame_group
+    ids = keyframe_of[has]
+    kf_stack = np.stack([start_T_kf[int(i)].numpy() for i in ids])
+    start_T_frame = kf_stack @ kf_T_frame[has]
+    groups = np.array([group_of_kf[int(i)] for i in ids])
+    frame_group[has] = groups
+    rel = np.empty_like(start_T_frame)
+    for g in np.unique(groups):
+        sel = groups == g
+        first = np.argmax(sel)  # frames are in video order
+        rel[sel] = np.linalg.inv(start_T_frame[first]) @ start_T_frame[sel]
+    poses[has] = rel
+    return poses, frame_group
+
+
+def main_group_poses(poses_by_group: np.ndarray, frame_group: np.ndarray) -> np.ndarray:
+    """Keep the group of the first contact frame; NaN elsewhere. ``(T, 4, 4)``."""
+    out = np.full_like(poses_by_group, np.nan)
+    contact = np.nonzero(frame_group >= 0)[0]
+    if len(contact):
+        sel = frame_group == frame_group[contact[0]]
+        out[sel] = poses_by_group[sel]
+    return out
+
+
+def write_tum(path: Path, poses: np.ndarray, timestamps: np.ndarray) -> None:
+    """TUM lines ``t tx ty tz qx qy qz qw`` for the finite rows of ``poses``."""
+    ok = np.isfinite(poses).all(axis=(1, 2))
+    lines = []
+    if ok.any():
+        q = Rotation.from_matrix(poses[ok, :3, :3]).as_quat()  # x y z w
+        for ts, p, qq in zip(timestamps[ok], poses[ok], q):
+            lines.append(" ".join(f"{v:.9f}" for v in (ts, *p[:3, 3], *qq)))
+    path.write_text("\n".join(lines) + ("\n" if lines else ""))
+
+
+def write_json(path: Path, data: Any) -> None:
+    path.write_text(json.dumps(data, indent=2))
