@@ -13,6 +13,7 @@ COMMAND_MODULES = (
     "tactile_slam.cli.run",
     "tactile_slam.cli.bench",
     "tactile_slam.cli.calibrate",
+    "tactile_slam.cli.simulate",
 )
 
 

@@ -1,0 +1,347 @@
+"""Synthetic episodes on disk: the layout of a recorded scan plus ground truth.
+
+An episode folder holds (``T`` frames, ``H x W`` pixels; docs/simulator.md):
+
+* ``gelsight.avi``: lossless FFV1 BGR video at the sensor's frame rate, read back
+  bit-exactly; its first ``lead_in`` (10) frames are contact-free. Image level only.
+* ``background.png``: the noise-free background the images were made on. Image level only.
+* ``gt_poses.npy``: ``(T, 4, 4)`` float64 ``object_T_sensor``, the sensor pose in the
+  object frame, metres, for every video frame.
+* ``in_contact.npy``: ``(T,)`` bool, rendered contact area at least the in-contact minimum.
+* ``gt_gradients.npz``: ``gradients`` ``(T, H, W, 2)`` float16 and ``contact``
+  ``(T, H, W)`` bool (deflate-compressed, written while rendering).
+* ``object.ply``: the object mesh in metres, in the object frame.
+* ``meta.yaml``: sensor, object, kind, seed, level, gel and motion settings, and the
+  ground-truth motion range.
+
+The image level needs the forward colour model (``models/gelsight_mini_colour.pt``
+from the calibration step, see :class:`tactile_slam.calibration.colour_model.ColourModel`);
+the gradient level needs nothing and writes everything but the video and background.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import zipfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import open3d as o3d
+import torch
+import yaml
+
+from tactile_slam.config import MODELS_DIR, REPO_ROOT, Config
+from tactile_slam.eval.tracking_metrics import motion_range
+from tactile_slam.eval.trajectory import relative_to
+from tactile_slam.sim.motions import Motion, MotionConfig, make_motion
+from tactile_slam.sim.objects import OBJECTS, resolve_object
+from tactile_slam.sim.renderer import GelRenderer, RenderConfig
+
+LEVELS = ("gradients", "image")
+VIDEO, BACKGROUND, POSES, CONTACT, GRADIENTS, MESH, META = (
+    "gelsight.avi", "background.png", "gt_poses.npy", "in_contact.npy", "gt_gradients.npz", "object.ply", "meta.yaml")
+DEFAULT_COLOUR_MODEL = MODELS_DIR / "gelsight_mini_colour.pt"
+SHARED_BACKGROUND = REPO_ROOT.parent / "shared" / "data" / "gelsight_mini" / "calibration" / "background.png"
+
+
+class EpisodeError(ValueError):
+    """An episode folder is missing files or holds inconsistent data."""
+
+
+# ---------------------------------------------------------------- image formation
+
+
+def synthetic_background(shape: tuple[int, int]) -> np.ndarray:
+    """A smooth GelSight-like background ``(H, W, 3)`` uint8: a mean colour near a
+    GelSight Mini's (B, G, R ~ 105, 95, 78) with smooth left-right and top-bottom colour
+    gradients and a vignette. Used when no real background is available."""
+    h, w = shape
+    y, x = np.meshgrid(np.linspace(-1, 1, h), np.linspace(-1, 1, w), indexing="ij")
+    vignette = 1.0 - 0.12 * (x**2 + y**2)
+    bgr = np.stack([105 - 20 * x + 6 * y, 95 + 8 * y - 4 * x, 78 + 25 * x - 10 * y], -1) * vignette[..., None]
+    return np.clip(np.round(bgr), 0, 255).astype(np.uint8)
+
+
+def load_background_image(path: str | Path | None, shape: tuple[int, int]) -> tuple[np.ndarray, str]:
+    """``(background (H, W, 3) uint8, source)``: ``path``; else the real GelSight Mini
+    background in ``../shared`` when present; else :func:`synthetic_background`."""
+    if path is None and SHARED_BACKGROUND.is_file():
+        path = SHARED_BACKGROUND
+    if path is None:
+        return synthetic_background(shape), "synthetic"
+    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if img is None:
+        raise EpisodeError(f"cannot read background image {path}")
+    if img.shape[:2] != tuple(shape):
+        raise EpisodeError(f"background {path} is {img.shape[1]}x{img.shape[0]}, expected {shape[1]}x{shape[0]}")
+    return img, str(path)
+
+
+def load_colour_model(path: str | Path | None = None, device: torch.device | str = "cpu"):
+    """The calibration step's forward colour model (``gradients -> BGR - background``).
+
+    Raises:
+        EpisodeError: the model file does not exist yet (fit it with the calibration
+            CLI, or simulate at ``--level gradients``).
+    """
+    from tactile_slam.calibration.colour_model import ColourModel
+
+    path = Path(path) if path is not None else DEFAULT_COLOUR_MODEL
+    if not path.is_file():
+        raise EpisodeError(
+            f"image-level simulation needs a forward colour model, not found at {path}; fit one with the "
+            "calibration tools or simulate at the gradient level (--level gradients)"
+        )
+    return ColourModel.load(path, device)
+
+
+def compose_images(gradients: torch.Tensor, background: np.ndarray, colour_model, noise_std: float,
+                   seed: int, first_index: int) -> np.ndarray:
+    """BGR frames = background + colour_model(gradients) + Gaussian noise, rounded.
+
+    Args:
+        gradients: ``(N, H, W, 2)`` slopes.
+        background: ``(H, W, 3)`` uint8.
+        colour_model: callable ``(N, H, W, 2) -> (N, H, W, 3)`` BGR difference.
+        noise_std: sensor noise in grey levels.
+        seed, first_index: frame ``k`` of the batch draws its noise from
+            ``default_rng([seed, first_index + k])``, so images do not depend on batching.
+
+    Returns:
+        ``(N, H, W, 3)`` uint8.
+    """
+    diff = colour_model(gradients).detach().cpu().numpy().astype(np.float64)
+    out = background[None].astype(np.float64) + diff
+    if noise_std > 0:
+        for k in range(len(out)):
+            out[k] += np.random.default_rng([seed, first_index + k]).normal(0.0, noise_std, out[k].shape)
+    return np.clip(np.round(out), 0, 255).astype(np.uint8)
+
+
+# ---------------------------------------------------------------- npz streaming
+
+
+class _NpyMember:
+    """Writes one ``.npy`` member of a zip archive chunk by chunk."""
+
+    def __init__(self, archive: zipfile.ZipFile, name: str, shape: tuple[int, ...], dtype: np.dtype):
+        self.fp = archive.open(name + ".npy", "w", force_zip64=True)
+        header = {"descr": np.lib.format.dtype_to_descr(np.dtype(dtype)), "fortran_order": False, "shape": shape}
+        np.lib.format.write_array_header_2_0(self.fp, header)
+        self.dtype = np.dtype(dtype)
+
+    def write(self, chunk: np.ndarray) -> None:
+        self.fp.write(np.ascontiguousarray(chunk, dtype=self.dtype).tobytes())
+
+    def close(self) -> None:
+        self.fp.close()
+
+
+# ---------------------------------------------------------------- writing
+
+
+@dataclass
+class SimulationSettings:
+    """What to simulate (lengths in mm at this user-facing edge).
+
+    Attributes:
+        object: catalogue name (:data:`tactile_slam.sim.objects.OBJECTS`) or mesh path.
+        kind: ``tracking``, ``contact_loss``, ``scan`` or ``long``.
+        seed: seeds the object texture, the motion and the image noise.
+        frames: number of frames; ``None`` = the kind's default.
+        level: ``gradients`` or ``image``.
+        size_mm: object size; ``None`` = the catalogue default.
+        mesh_scale: scale from a user mesh's units to metres.
+        noise_std: image noise (grey levels).
+        colour_model: forward colour model file (``None``: the packaged default).
+        background: background image (``None``: real Mini background if present, else synthetic).
+        batch: frames rendered at a time.
+    """
+
+    object: str = "seed"
+    kind: str = "tracking"
+    seed: int = 0
+    frames: int | None = None
+    level: str = "gradients"
+    size_mm: float | None = None
+    mesh_scale: float = 1.0
+    noise_std: float = 1.0
+    colour_model: str | None = None
+    background: str | None = None
+    batch: int = 32
+
+
+def simulate_episode(out_dir: str | Path, settings: SimulationSettings, config: Config | None = None,
+                     render_config: RenderConfig | None = None, motion_config: MotionConfig | None = None,
+                     device: torch.device | str = "cpu") -> Path:
+    """Render an episode into ``out_dir`` (created; existing episode files are replaced).
+
+    Returns:
+        ``out_dir``.
+    """
+    if settings.level not in LEVELS:
+        raise EpisodeError(f"level must be one of {LEVELS}, got {settings.level!r}")
+    config = config or Config()
+    motion_config = motion_config or MotionConfig()
+    colour_model = background = None
+    background_source = None
+    if settings.level == "image":  # fail before rendering if the colour model is missing
+        colour_model = load_colour_model(settings.colour_model, device)
+        background, background_source = load_background_image(settings.background, config.sensor.shape)
+    mesh = resolve_object(settings.object, settings.size_mm, settings.seed, settings.mesh_scale)
+    renderer = GelRenderer(mesh, config, render_config, device)
+    motion = make_motion(renderer, settings.kind, settings.frames, settings.seed, motion_config)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    in_contact = _render_to_disk(out, renderer, motion, settings, colour_model, background)
+    np.save(out / POSES, motion.object_T_sensor)
+    np.save(out / CONTACT, in_contact)
+    o3d.io.write_triangle_mesh(str(out / MESH), mesh)
+    if background is not None:
+        cv2.imwrite(str(out / BACKGROUND), background)
+    first = int(np.argmax(in_contact)) if in_contact.any() else 0
+    gt_rel = relative_to(motion.object_T_sensor, first)
+    meta = {
+        "format": "tactile-slam-episode",
+        "version": 1,
+        "kind": settings.kind,
+        "level": settings.level,
+        "seed": settings.seed,
+        "frames": int(len(motion.object_T_sensor)),
+        "lead_in": motion_config.lead_in,
+        "first_contact_frame": first,
+        "contact_frames": int(in_contact.sum()),
+        "pose_convention": "gt_poses[i] = object_T_sensor (sensor pose in the object frame), metres",
+        "sensor": dataclasses.asdict(config.sensor),
+        "object": {"name": settings.object, "catalogue": settings.object in OBJECTS,
+                   "size_mm": settings.size_mm if settings.size_mm is not None else
+                   (OBJECTS[settings.object].default_size_mm if settings.object in OBJECTS else None),
+                   "mesh_scale": settings.mesh_scale, "triangles": len(mesh.triangles), "file": MESH},
+        "gel": dataclasses.asdict(renderer.render_config),
+        "motion": _plain(dataclasses.asdict(motion_config)),
+        "motion_range_from_first_contact": motion_range(gt_rel[first:], in_contact[first:]),
+        "image": None if settings.level == "gradients" else {
+            "colour_model": str(settings.colour_model or DEFAULT_COLOUR_MODEL),
+            "background": background_source, "noise_std": settings.noise_std},
+    }
+    (out / META).write_text(yaml.safe_dump(meta, sort_keys=False))
+    return out
+
+
+def _plain(d: dict) -> dict:
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+
+
+def _render_to_disk(out: Path, renderer: GelRenderer, motion: Motion, settings: SimulationSettings,
+                    colour_model, background) -> np.ndarray:
+    """Render in batches, streaming gradients into the npz and frames into the video."""
+    poses = motion.object_T_sensor
+    t = len(poses)
+    h, w = renderer.config.sensor.shape
+    in_contact = np.zeros(t, dtype=bool)
+    contact_bits = []
+    path = out / GRADIENTS
+    tmp = path.with_suffix(".npz.part")
+
+    def frames() -> Iterator[np.ndarray]:
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+            member = _NpyMember(zf, "gradients", (t, h, w, 2), np.float16)
+            for a in range(0, t, settings.batch):
+                maps = renderer.render(poses[a:a + settings.batch])
+                member.write(maps.gradients.cpu().numpy().astype(np.float16))
+                contact = maps.contact.cpu().numpy()
+                contact_bits.append(np.packbits(contact.reshape(len(contact), -1), axis=1))
+                in_contact[a:a + len(contact)] = maps.in_contact.cpu().numpy()
+                if colour_model is not None:
+                    yield from compose_images(maps.gradients, background, colour_model, settings.noise_std,
+                                              settings.seed, a)
+            member.close()
+            member = _NpyMember(zf, "contact", (t, h, w), np.bool_)
+            for bits in contact_bits:
+                member.write(np.unpackbits(bits, axis=1, count=h * w).astype(bool).reshape(-1, h, w))
+            member.close()
+
+    if colour_model is not None:
+        from tactile_slam.io.video import write_video
+
+        write_video(out / VIDEO, frames(), renderer.config.sensor.fps)
+    else:
+        for _ in frames():
+            pass
+    tmp.replace(path)
+    return in_contact
+
+
+# ---------------------------------------------------------------- reading
+
+
+@dataclass
+class Episode:
+    """A simulated episode's ground truth (see the module docstring for the files).
+
+    Attributes:
+        path: the folder.
+        object_T_sensor: ``(T, 4, 4)`` float64 metres.
+        in_contact: ``(T,)`` bool.
+        meta: parsed ``meta.yaml``.
+    """
+
+    path: Path
+    object_T_sensor: np.ndarray
+    in_contact: np.ndarray
+    meta: dict
+
+    def __len__(self) -> int:
+        return len(self.object_T_sensor)
+
+    @property
+    def first_contact(self) -> int:
+        """Index of the first frame in contact."""
+        if not self.in_contact.any():
+            raise EpisodeError(f"episode {self.path} has no frame in contact")
+        return int(np.argmax(self.in_contact))
+
+    def mesh(self) -> o3d.geometry.TriangleMesh:
+        """The object mesh (metres, object frame)."""
+        return read_mesh(self.path / MESH)
+
+    def gradients(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(gradients (T, H, W, 2) float16, contact (T, H, W) bool)``."""
+        path = self.path / GRADIENTS
+        if not path.is_file():
+            raise EpisodeError(f"missing {path}")
+        with np.load(path, allow_pickle=False) as data:
+            return data["gradients"], data["contact"]
+
+
+def read_mesh(path: Path) -> o3d.geometry.TriangleMesh:
+    if not path.is_file():
+        raise EpisodeError(f"mesh file not found: {path}")
+    mesh = o3d.io.read_triangle_mesh(str(path))
+    if len(mesh.triangles) == 0:
+        raise EpisodeError(f"mesh file has no triangles: {path}")
+    mesh.compute_vertex_normals()
+    return mesh
+
+
+def read_episode(path: str | Path) -> Episode:
+    """Load an episode folder's poses, contact flags and metadata."""
+    path = Path(path)
+    if not path.is_dir():
+        raise EpisodeError(f"episode folder not found: {path}")
+    for name in (POSES, CONTACT, META):
+        if not (path / name).is_file():
+            raise EpisodeError(f"episode {path} is missing {name}")
+    poses = np.load(path / POSES, allow_pickle=False)
+    contact = np.load(path / CONTACT, allow_pickle=False)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise EpisodeError(f"{path / POSES}: expected (T, 4, 4), got {poses.shape}")
+    if contact.shape != (len(poses),):
+        raise EpisodeError(f"{path / CONTACT}: expected ({len(poses)},), got {contact.shape}")
+    if not np.isfinite(poses).all():
+        raise EpisodeError(f"{path / POSES}: non-finite poses")
+    meta = yaml.safe_load((path / META).read_text()) or {}
+    return Episode(path, poses.astype(np.float64), contact.astype(bool), meta)

@@ -1,0 +1,93 @@
+"""Surface queries on object meshes: area-uniform sampling, farthest-point subsets, and
+closest points with normals smoothed at the scale of a tactile contact."""
+
+from __future__ import annotations
+
+import numpy as np
+import open3d as o3d
+
+
+def sample_triangles(vertices: np.ndarray, triangles: np.ndarray, n: int,
+                     rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Area-uniform random points on triangles ``vertices[triangles]``.
+
+    Args:
+        vertices: ``(V, 3)``; triangles: ``(F, 3)`` int; n: number of points.
+        rng: random generator (the result is deterministic given its state).
+
+    Returns:
+        ``(points (n, 3), normals (n, 3))``: positions and the unit normals of the
+        triangles they lie on (the winding decides the side).
+    """
+    if len(triangles) == 0:
+        raise ValueError("cannot sample a mesh without triangles")
+    a, b, c = vertices[triangles[:, 0]], vertices[triangles[:, 1]], vertices[triangles[:, 2]]
+    cross = np.cross(b - a, c - a)
+    area = np.linalg.norm(cross, axis=1)
+    if not area.sum() > 0:
+        raise ValueError("mesh has zero surface area")
+    idx = rng.choice(len(triangles), size=n, p=area / area.sum())
+    s, r2 = np.sqrt(rng.random(n)), rng.random(n)
+    pts = (1 - s)[:, None] * a[idx] + (s * (1 - r2))[:, None] * b[idx] + (s * r2)[:, None] * c[idx]
+    normals = cross[idx] / np.maximum(area[idx], 1e-300)[:, None]
+    return pts, normals
+
+
+def sample_surface(mesh: o3d.geometry.TriangleMesh, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Area-uniform random points and their triangle normals on ``mesh`` (its units);
+    see :func:`sample_triangles`."""
+    return sample_triangles(np.asarray(mesh.vertices), np.asarray(mesh.triangles), n, rng)
+
+
+def farthest_points(points: np.ndarray, k: int, start: int = 0) -> np.ndarray:
+    """Indices of ``k`` points chosen by farthest-point sampling (a Poisson-disk-like,
+    deterministic cover). ``points`` ``(N, 3)`` -> ``(k,)`` int64."""
+    n = len(points)
+    if not 0 < k <= n:
+        raise ValueError(f"cannot choose {k} of {n} points")
+    chosen = np.empty(k, dtype=np.int64)
+    chosen[0] = start
+    dist = np.linalg.norm(points - points[start], axis=1)
+    for i in range(1, k):
+        chosen[i] = int(np.argmax(dist))
+        dist = np.minimum(dist, np.linalg.norm(points - points[chosen[i]], axis=1))
+    return chosen
+
+
+class SurfaceGuide:
+    """Closest points on a mesh and outward normals smoothed over ``smoothing_m``.
+
+    The smoothed normals come from a vertex-clustered copy of the mesh (cells of
+    ``smoothing_m``), interpolated barycentrically, so texture below that scale does
+    not tilt the sensor.
+
+    Args:
+        mesh: object mesh in metres with outward winding.
+        smoothing_m: scale of the normal smoothing (about the contact radius).
+    """
+
+    def __init__(self, mesh: o3d.geometry.TriangleMesh, smoothing_m: float = 8e-4):
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
+        coarse = mesh.simplify_vertex_clustering(smoothing_m)
+        coarse.remove_degenerate_triangles()
+        coarse.compute_vertex_normals()
+        self.coarse_scene = o3d.t.geometry.RaycastingScene()
+        self.coarse_scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(coarse))
+        self.coarse_tri = np.asarray(coarse.triangles)
+        self.coarse_normals = np.asarray(coarse.vertex_normals)
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Closest surface points ``(N, 3)`` and smoothed outward normals ``(N, 3)``."""
+        q = o3d.core.Tensor(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        closest = self.scene.compute_closest_points(q)["points"].numpy().astype(np.float64)
+        res = self.coarse_scene.compute_closest_points(o3d.core.Tensor(closest.astype(np.float32)))
+        ids = res["primitive_ids"].numpy().astype(np.int64)
+        uv = res["primitive_uvs"].numpy().astype(np.float64)
+        vn = self.coarse_normals[self.coarse_tri[ids]]  # (N, 3 vertices, 3)
+        w = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], -1)
+        n = np.einsum("nk,nkd->nd", w, vn)
+        norm = np.linalg.norm(n, axis=1, keepdims=True)
+        fine = res["primitive_normals"].numpy().astype(np.float64)  # coarse face normal as fallback
+        n = np.where(norm > 1e-3, n / np.maximum(norm, 1e-12), fine)
+        return closest, n / np.linalg.norm(n, axis=1, keepdims=True)
