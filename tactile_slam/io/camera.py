@@ -86,12 +86,12 @@ def crop_box(raw_shape: tuple[int, int], shape: tuple[int, int]) -> tuple[int, i
     out_h, out_w = shape
     top, bottom, left, right = h // 7, h - h // 7, w // 7, w - w // 7
     rows, cols = bottom - top, right - left
-    if rows <= 0 or cols <= 0:
-        raise InputError(f"raw frame {w}x{h} is too small to crop")
     if cols * out_h > rows * out_w:  # too wide: trim columns from the left
         left = right - rows * out_w // out_h
     else:  # too tall: trim rows from the top
         top = bottom - cols * out_h // out_w
+    if bottom <= top or right <= left:
+        raise InputError(f"raw frame {w}x{h} is too small to crop")
     return top, bottom, left, right
 
 

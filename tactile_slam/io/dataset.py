@@ -36,7 +36,8 @@ class FrameBatch:
         return int(self.index.shape[0])
 
     def _map(self, fn) -> "FrameBatch":
-        return replace(self, **{f.name: fn(getattr(self, f.name)) for f in fields(self) if getattr(self, f.name) is not None})
+        tensors = {f.name: getattr(self, f.name) for f in fields(self)}
+        return replace(self, **{name: fn(t) for name, t in tensors.items() if t is not None})
 
     def to(self, device: torch.device | str) -> "FrameBatch":
         """Copy every tensor to ``device``."""

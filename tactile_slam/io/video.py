@@ -103,6 +103,7 @@ class VideoSource(SequenceSource):
         self.resize = resize
         self._cap: cv2.VideoCapture | None = None
         self._cap_pid: int | None = None
+        self._forked_caps: list[cv2.VideoCapture] = []
         self._next = 0
 
     def __len__(self) -> int:
@@ -119,7 +120,8 @@ class VideoSource(SequenceSource):
     def frame(self, position: int) -> RawFrame:
         # One capture per process (DataLoader workers reopen it); sequential access
         # continues decoding, any other access seeks.
-        if self._cap is None or self._cap_pid != os.getpid():
+        self._drop_inherited()
+        if self._cap is None:
             self._cap, self._cap_pid, self._next = _open_capture(self.path), os.getpid(), 0
         if position != self._next:
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, position)
@@ -142,14 +144,23 @@ class VideoSource(SequenceSource):
     def __iter__(self) -> Iterator[RawFrame]:
         return self.iter_from(0)
 
+    def _drop_inherited(self) -> None:
+        # A capture inherited through fork (DataLoader workers): its decoder threads
+        # do not exist in this process and releasing it would wait on them forever.
+        # Keep it referenced and never touch it.
+        if self._cap is not None and self._cap_pid != os.getpid():
+            self._forked_caps.append(self._cap)
+            self._cap = None
+
     def close(self) -> None:
+        self._drop_inherited()
         if self._cap is not None:
             self._cap.release()
             self._cap = None
 
     def __getstate__(self) -> dict:
         state = self.__dict__.copy()
-        state["_cap"], state["_cap_pid"] = None, None
+        state["_cap"], state["_cap_pid"], state["_forked_caps"] = None, None, []
         return state
 
 
