@@ -1,0 +1,168 @@
+"""Descriptor matching, the 2-D similarity model and its SE(3) lift (method.md section 6.3).
+
+``match`` pairs reference and target keypoints by brute-force L2 nearest neighbours
+with a cross-check (the reference is the query side, no ratio test), then fits a 4-DoF
+similarity ``p_tar = A p_ref + m`` (rotation, uniform scale, translation) by RANSAC
+with OpenCV's partial-affine estimator and LM refinement on the inliers. The
+estimator only runs with at least ``min_inliers`` matches (degenerate input can make
+it fail), and the pair is a loop candidate only when it keeps ``min_inliers`` inliers.
+
+``similarity_to_se3`` lifts the 2-D model to an initial ``tar_T_ref``: a rotation about
+the sensor z axis by the similarity's rotation (scale dropped, no tilt) and the
+in-plane translation of the image centre ``c = ((W - 1) / 2, (H - 1) / 2)``, the
+metric origin of method.md 1.2. (The public code uses ``(W / 2, H / 2)``, which biases
+the translation by half a pixel times the rotation.)
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+from tactile_slam.loop.features import Features
+
+
+class MatchingError(ValueError):
+    """Unusable matching input (wrong shapes, NaN, bad model)."""
+
+
+@dataclass(frozen=True)
+class RansacSettings:
+    """RANSAC for the 2-D similarity (OpenCV ``estimateAffinePartial2D``).
+
+    Attributes:
+        min_inliers: least matches to try and least inliers to accept.
+        iterations: RANSAC iterations.
+        threshold_px: reprojection threshold (px).
+        confidence: RANSAC confidence.
+        refine_iters: LM refinement iterations on the inliers.
+    """
+
+    min_inliers: int = 8
+    iterations: int = 100
+    threshold_px: float = 3.0
+    confidence: float = 0.99
+    refine_iters: int = 10
+
+
+@dataclass
+class Similarity:
+    """A 2-D similarity between two keyframes' pixels.
+
+    Attributes:
+        M: ``(2, 3)`` float64 ``[A | m]`` mapping reference pixels ``(x, y)`` to target
+            pixels: ``p_tar = A p_ref + m``.
+        inliers: RANSAC inlier count.
+        matches: cross-checked matches it was fitted to.
+    """
+
+    M: np.ndarray
+    inliers: int
+    matches: int
+
+
+def _as_np(x: torch.Tensor | np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(x.detach().cpu().numpy() if isinstance(x, torch.Tensor) else x, dtype=np.float32)
+
+
+def match_descriptors(ref: torch.Tensor | np.ndarray, tar: torch.Tensor | np.ndarray) -> np.ndarray:
+    """Cross-checked brute-force L2 matches.
+
+    Args:
+        ref: ``(N, D)`` reference descriptors (the query side).
+        tar: ``(M, D)`` target descriptors.
+
+    Returns:
+        ``(K, 2)`` int64 ``(ref index, tar index)`` pairs, each the other's nearest
+        neighbour; ``K = 0`` when either side is empty.
+    """
+    ref, tar = _as_np(ref), _as_np(tar)
+    if ref.ndim != 2 or tar.ndim != 2 or ref.shape[1] != tar.shape[1]:
+        raise MatchingError(f"descriptors must be (N, D) and (M, D), got {ref.shape} and {tar.shape}")
+    if len(ref) == 0 or len(tar) == 0:
+        return np.zeros((0, 2), np.int64)
+    if not (np.isfinite(ref).all() and np.isfinite(tar).all()):
+        raise MatchingError("descriptors contain NaN or Inf")
+    found = cv2.BFMatcher(cv2.NORM_L2, crossCheck=True).match(ref, tar)
+    return np.array([(m.queryIdx, m.trainIdx) for m in found], dtype=np.int64).reshape(-1, 2)
+
+
+def estimate_similarity(ref_xy: np.ndarray, tar_xy: np.ndarray, settings: RansacSettings | None = None
+                        ) -> Similarity | None:
+    """RANSAC 4-DoF similarity ``tar = A ref + m`` between matched pixel positions.
+
+    Args:
+        ref_xy: ``(K, 2)`` reference keypoints ``(x, y)`` px.
+        tar_xy: ``(K, 2)`` matched target keypoints.
+        settings: RANSAC settings.
+
+    Returns:
+        the :class:`Similarity`, or ``None`` when there are fewer than
+        ``min_inliers`` matches or inliers, or the estimator fails.
+    """
+    s = settings or RansacSettings()
+    ref_xy, tar_xy = _as_np(ref_xy), _as_np(tar_xy)
+    if ref_xy.shape != tar_xy.shape or ref_xy.ndim != 2 or ref_xy.shape[1] != 2:
+        raise MatchingError(f"matched points must be two (K, 2) arrays, got {ref_xy.shape} and {tar_xy.shape}")
+    if len(ref_xy) < max(s.min_inliers, 2):
+        return None
+    M, mask = cv2.estimateAffinePartial2D(
+        ref_xy, tar_xy, method=cv2.RANSAC, ransacReprojThreshold=s.threshold_px, maxIters=s.iterations,
+        confidence=s.confidence, refineIters=s.refine_iters,
+    )
+    if M is None or mask is None or not np.isfinite(M).all():
+        return None
+    inliers = int(mask.sum())
+    if inliers < s.min_inliers:
+        return None
+    return Similarity(M.astype(np.float64), inliers, len(ref_xy))
+
+
+def match(ref: Features, tar: Features, settings: RansacSettings | None = None) -> Similarity | None:
+    """Match two keyframes' features and fit the 2-D similarity ref -> tar pixels.
+
+    Returns:
+        the :class:`Similarity`, or ``None`` if the pair is not a loop candidate.
+    """
+    s = settings or RansacSettings()
+    if len(ref) < s.min_inliers or len(tar) < s.min_inliers:
+        return None
+    pairs = match_descriptors(ref.descriptors, tar.descriptors)
+    if len(pairs) < s.min_inliers:
+        return None
+    return estimate_similarity(ref.keypoints.numpy()[pairs[:, 0]], tar.keypoints.numpy()[pairs[:, 1]], s)
+
+
+def similarity_to_se3(M: np.ndarray | torch.Tensor, shape: tuple[int, int], m_per_px: float) -> torch.Tensor:
+    """Lift a pixel similarity ``p_tar = A p_ref + m`` to an initial ``tar_T_ref``.
+
+    With ``sigma = sqrt(M00^2 + M01^2)`` and ``R2 = A / sigma`` (scale dropped), the
+    result rotates by ``R2`` about z and translates by ``((A c + m - c) s, 0)``, where
+    ``c = ((W - 1) / 2, (H - 1) / 2)`` is the image centre and ``s`` the pixel size:
+    a target pattern shifted by ``+dx`` px gives ``+dx s`` in x (method.md 1.4).
+
+    Args:
+        M: ``(2, 3)`` similarity.
+        shape: ``(H, W)`` image size.
+        m_per_px: metres per pixel.
+
+    Returns:
+        ``(4, 4)`` float64 ``tar_T_ref`` in metres (maps reference-sensor coordinates
+        into target-sensor coordinates).
+    """
+    M = torch.as_tensor(np.asarray(M), dtype=torch.float64)
+    if M.shape != (2, 3) or not bool(torch.isfinite(M).all()):
+        raise MatchingError(f"similarity must be a finite (2, 3) matrix, got {tuple(M.shape)}")
+    sigma = float(torch.hypot(M[0, 0], M[0, 1]))
+    if not sigma > 0:
+        raise MatchingError("similarity has zero scale")
+    h, w = shape
+    c = torch.tensor([(w - 1) / 2.0, (h - 1) / 2.0], dtype=torch.float64)
+    A, m = M[:, :2], M[:, 2]
+    T = torch.eye(4, dtype=torch.float64)
+    T[:2, :2] = A / sigma
+    T[:2, 3] = (A @ c + m - c) * m_per_px
+    return T

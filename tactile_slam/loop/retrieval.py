@@ -1,0 +1,293 @@
+"""Loop-candidate retrieval that does not grow as brute force over the map.
+
+Two filters narrow the eligible keyframes (the active coverage keyframes) before the
+per-pair matching and RANSAC of :mod:`tactile_slam.loop.matching`:
+
+* a **pose gate** for keyframes of the query's own connected group: each keyframe's
+  contact footprint is summarised by its centroid and radius (metres, keyframe frame);
+  a candidate whose footprint sphere, moved by the current pose estimates, lies farther
+  than ``margin`` from the query's, or whose sensor z axis opposes the query's (the
+  coverage set's overlap is zero then, method.md 6.1), cannot overlap it and is
+  skipped. Keyframes of other groups have no relative pose estimate and are not gated.
+* a **descriptor index** over the keyframes' SIFT descriptors: each query descriptor
+  takes its ``k`` nearest indexed descriptors; each distinct keyframe among them gets
+  one vote; the keyframes with the most votes (at least ``min_votes``) are the
+  candidates. The index is an OpenCV FLANN kd-tree forest rebuilt when the descriptors
+  added since the last build (searched exactly, by brute force) or removed since then
+  exceed a fraction of it; small pools are searched exactly.
+
+Per-query cost is ``O(Q log N)`` for the kd-tree part plus ``O(Q P)`` for the ``P``
+pending descriptors, instead of a match and a RANSAC per keyframe.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Collection
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import torch
+
+
+class RetrievalError(ValueError):
+    """Invalid input to retrieval (bad descriptors, unknown or duplicate id, bad pose)."""
+
+
+# --------------------------------------------------------------------------- pose gate
+
+
+@dataclass
+class Footprint:
+    """Contact footprint of a keyframe in its own sensor frame.
+
+    Attributes:
+        centre: ``(3,)`` float64 metres, mean of the contact points.
+        radius: metres, largest distance of a contact point from ``centre``.
+    """
+
+    centre: torch.Tensor
+    radius: float
+
+
+def footprints(height: torch.Tensor, contact: torch.Tensor, m_per_px: float) -> list[Footprint | None]:
+    """Footprints of ``B`` keyframes (``None`` where the contact is empty).
+
+    Args:
+        height: ``(B, H, W)`` px.
+        contact: ``(B, H, W)`` bool.
+        m_per_px: metres per pixel.
+
+    Returns:
+        ``B`` footprints; points follow method.md 1.2.
+    """
+    if height.ndim != 3 or tuple(contact.shape) != tuple(height.shape):
+        raise RetrievalError(f"height and contact must be matching (B, H, W), got {tuple(height.shape)} "
+                             f"and {tuple(contact.shape)}")
+    b, h, w = height.shape
+    r = (torch.arange(h, dtype=torch.float64, device=height.device) - (h - 1) / 2.0)[:, None].expand(h, w)
+    c = (torch.arange(w, dtype=torch.float64, device=height.device) - (w - 1) / 2.0)[None, :].expand(h, w)
+    pts = torch.stack([c.expand(b, h, w), r.expand(b, h, w), height.double()], -1) * m_per_px  # (B, H, W, 3)
+    m = contact.double()[..., None]
+    n = m.sum((1, 2, 3))
+    centre = (pts * m).sum((1, 2)) / n.clamp_min(1.0)[:, None]
+    dist = torch.linalg.vector_norm(pts - centre[:, None, None], dim=-1) * contact
+    radius = dist.amax((1, 2))
+    return [Footprint(centre[i].cpu(), float(radius[i])) if n[i] > 0 else None for i in range(b)]
+
+
+def pose_gate(query: Footprint, start_T_query: torch.Tensor, refs: list[Footprint],
+              start_T_refs: torch.Tensor, margin_m: float) -> torch.Tensor:
+    """Which reference footprints may overlap the query's under the pose estimates.
+
+    Args:
+        query: the query keyframe's footprint.
+        start_T_query: ``(4, 4)`` float64 pose of the query keyframe in the group start.
+        refs: ``R`` footprints of keyframes in the same group.
+        start_T_refs: ``(R, 4, 4)`` their poses in the same start frame.
+        margin_m: slack added to the sum of radii (pose drift, gel deformation).
+
+    Returns:
+        ``(R,)`` bool, True where the reference may overlap the query.
+    """
+    if len(refs) == 0:
+        return torch.zeros(0, dtype=torch.bool)
+    tq = torch.as_tensor(start_T_query, dtype=torch.float64).cpu()
+    tr = torch.as_tensor(start_T_refs, dtype=torch.float64).cpu()
+    if tq.shape != (4, 4) or tr.shape != (len(refs), 4, 4):
+        raise RetrievalError(f"poses must be (4, 4) and ({len(refs)}, 4, 4), got {tuple(tq.shape)} "
+                             f"and {tuple(tr.shape)}")
+    if not (bool(torch.isfinite(tq).all()) and bool(torch.isfinite(tr).all())):
+        raise RetrievalError("pose estimates contain NaN or Inf")
+    cq = tq[:3, :3] @ query.centre + tq[:3, 3]
+    centres = torch.stack([f.centre for f in refs])
+    radii = torch.tensor([f.radius for f in refs], dtype=torch.float64)
+    cr = torch.einsum("rij,rj->ri", tr[:, :3, :3], centres) + tr[:, :3, 3]
+    near = torch.linalg.vector_norm(cr - cq, dim=1) <= radii + query.radius + margin_m
+    facing = tr[:, :3, 2] @ tq[:3, 2] > 0.0
+    return near & facing
+
+
+# --------------------------------------------------------------------------- descriptor index
+
+
+@dataclass(frozen=True)
+class IndexSettings:
+    """Descriptor-index settings.
+
+    Attributes:
+        neighbours: nearest descriptors per query descriptor (``k``).
+        min_votes: least votes for a keyframe to be returned.
+        exact_max: pools up to this many descriptors are searched exactly.
+        rebuild_fraction: rebuild the kd-trees when the pending (added since the build)
+            or removed descriptors exceed this fraction of the indexed ones.
+        trees: kd-trees in the FLANN forest.
+        checks: leaves FLANN visits per query (accuracy vs time).
+    """
+
+    neighbours: int = 5
+    min_votes: int = 3
+    exact_max: int = 4096
+    rebuild_fraction: float = 0.25
+    trees: int = 4
+    checks: int = 64
+
+
+def _exact_knn(query: np.ndarray, pool: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """``k`` nearest rows of ``pool`` ``(P, D)`` for each row of ``query`` ``(Q, D)`` by
+    squared L2. Returns ``(idx (Q, k') int64, d2 (Q, k') float32)``, ``k' = min(k, P)``."""
+    q, p = torch.from_numpy(query), torch.from_numpy(pool)
+    d2 = (q.square().sum(1, keepdim=True) - 2.0 * q @ p.T + p.square().sum(1)[None]).clamp_min(0.0)
+    vals, idx = d2.topk(min(k, p.shape[0]), dim=1, largest=False)
+    return idx.numpy().astype(np.int64), vals.numpy()
+
+
+class DescriptorIndex:
+    """Approximate nearest-neighbour index of keyframe descriptors with per-keyframe voting.
+
+    Args:
+        settings: index settings.
+    """
+
+    def __init__(self, settings: IndexSettings | None = None):
+        self.settings = settings or IndexSettings()
+        if self.settings.neighbours < 1 or self.settings.min_votes < 1:
+            raise RetrievalError("index neighbours and min_votes must be >= 1")
+        self._blocks: dict[int, np.ndarray] = {}  # live descriptors per keyframe id
+        self._built_desc = np.zeros((0, 128), np.float32)
+        self._built_owner = np.zeros(0, np.int64)
+        self._flann: cv2.flann_Index | None = None
+        self._pending: list[int] = []  # ids added since the build, in order
+        self._removed = 0  # built descriptors whose keyframe has been removed
+        self._pending_cache: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __len__(self) -> int:
+        return len(self._blocks)
+
+    def __contains__(self, kf_id: int) -> bool:
+        return kf_id in self._blocks
+
+    @property
+    def n_descriptors(self) -> int:
+        return sum(len(d) for d in self._blocks.values())
+
+    def add(self, kf_id: int, descriptors: torch.Tensor | np.ndarray) -> None:
+        """Index a keyframe's ``(N, D)`` descriptors (``N`` may be 0)."""
+        if kf_id in self._blocks:
+            raise RetrievalError(f"keyframe {kf_id} is already indexed")
+        d = np.ascontiguousarray(descriptors.cpu().numpy() if isinstance(descriptors, torch.Tensor) else descriptors,
+                                 dtype=np.float32)
+        if d.ndim != 2 or (len(d) and d.shape[1] != self._built_desc.shape[1]):
+            raise RetrievalError(f"descriptors must be (N, {self._built_desc.shape[1]}), got {d.shape}")
+        if not np.isfinite(d).all():
+            raise RetrievalError(f"descriptors of keyframe {kf_id} contain NaN or Inf")
+        self._blocks[kf_id] = d
+        self._pending.append(kf_id)
+        self._pending_cache = None
+        self._maybe_rebuild()
+
+    def remove(self, kf_id: int) -> None:
+        """Drop a keyframe (e.g. deactivated by the coverage set); unknown ids are an error."""
+        d = self._blocks.pop(kf_id, None)
+        if d is None:
+            raise RetrievalError(f"keyframe {kf_id} is not indexed")
+        if kf_id in self._pending:
+            self._pending.remove(kf_id)
+            self._pending_cache = None
+        else:
+            self._removed += len(d)
+        self._maybe_rebuild()
+
+    def _pending_pool(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._pending_cache is None:
+            blocks = [self._blocks[i] for i in self._pending]
+            desc = np.concatenate(blocks) if blocks else np.zeros((0, 128), np.float32)
+            owner = np.repeat(np.asarray(self._pending, np.int64), [len(b) for b in blocks])
+            self._pending_cache = (desc, owner)
+        return self._pending_cache
+
+    def _maybe_rebuild(self) -> None:
+        s = self.settings
+        n_built = len(self._built_owner)
+        n_pending = sum(len(self._blocks[i]) for i in self._pending)
+        if n_built + n_pending - self._removed <= s.exact_max:
+            if self._flann is not None:  # shrank back: search everything exactly
+                self._rebuild(flann=False)
+            return
+        if self._flann is None or n_pending > s.rebuild_fraction * n_built or self._removed > s.rebuild_fraction * n_built:
+            self._rebuild(flann=True)
+
+    def _rebuild(self, flann: bool) -> None:
+        ids = list(self._blocks)
+        if flann:
+            blocks = [self._blocks[i] for i in ids]
+            self._built_desc = np.concatenate(blocks)
+            self._built_owner = np.repeat(np.asarray(ids, np.int64), [len(b) for b in blocks])
+            self._flann = cv2.flann_Index(self._built_desc, dict(algorithm=1, trees=self.settings.trees))
+            self._pending = []
+        else:
+            self._built_desc = np.zeros((0, 128), np.float32)
+            self._built_owner = np.zeros(0, np.int64)
+            self._flann = None
+            self._pending = ids
+        self._removed = 0
+        self._pending_cache = None
+
+    def neighbours(self, query: torch.Tensor | np.ndarray) -> np.ndarray:
+        """Keyframe ids of the ``k`` nearest live descriptors of each query descriptor.
+
+        Args:
+            query: ``(Q, D)`` descriptors.
+
+        Returns:
+            ``(Q, k')`` int64 keyframe ids (``-1`` where fewer than ``k`` exist).
+        """
+        q = np.ascontiguousarray(query.cpu().numpy() if isinstance(query, torch.Tensor) else query, np.float32)
+        k = self.settings.neighbours
+        out_ids, out_d = [], []
+        if self._flann is not None and len(q):
+            kk = min(k + (k if self._removed else 0), len(self._built_owner))
+            idx, d2 = self._flann.knnSearch(q, kk, params=dict(checks=self.settings.checks))
+            idx = idx.astype(np.int64).reshape(len(q), kk)
+            owner = self._built_owner[np.clip(idx, 0, None)]
+            dead = (idx < 0) | ~np.isin(owner, np.fromiter(self._blocks, np.int64, len(self._blocks)))
+            out_ids.append(np.where(dead, -1, owner))
+            out_d.append(np.where(dead, np.inf, d2.reshape(len(q), kk)))
+        desc, owner = self._pending_pool()
+        if len(desc) and len(q):
+            idx, d2 = _exact_knn(q, desc, k)
+            out_ids.append(owner[idx])
+            out_d.append(d2)
+        if not out_ids:
+            return np.full((len(q), 0), -1, np.int64)
+        ids, d = np.concatenate(out_ids, 1), np.concatenate(out_d, 1)
+        order = np.argsort(d, axis=1, kind="stable")[:, :k]
+        return np.take_along_axis(ids, order, 1)
+
+    def vote(self, query: torch.Tensor | np.ndarray, allowed: Collection[int] | None = None) -> dict[int, int]:
+        """Votes per keyframe: the number of query descriptors with that keyframe among
+        their ``k`` nearest descriptors. Only ``allowed`` ids count (all if ``None``).
+
+        Returns:
+            ``{kf_id: votes}`` for ids with at least one vote.
+        """
+        ids = self.neighbours(query)
+        if ids.size == 0:
+            return {}
+        # one vote per (query descriptor, keyframe)
+        ids = np.sort(ids, axis=1)
+        first = np.ones_like(ids, dtype=bool)
+        first[:, 1:] = ids[:, 1:] != ids[:, :-1]
+        flat = ids[first & (ids >= 0)]
+        if allowed is not None:
+            flat = flat[np.isin(flat, np.fromiter(allowed, np.int64, len(allowed)))]
+        uniq, counts = np.unique(flat, return_counts=True)
+        return dict(zip(uniq.tolist(), counts.tolist()))
+
+    def query(self, query: torch.Tensor | np.ndarray, allowed: Collection[int] | None, top: int) -> list[int]:
+        """The ``top`` keyframes with the most votes (at least ``min_votes``), best first
+        (ties: lower id first)."""
+        votes = self.vote(query, allowed)
+        ranked = sorted((kf for kf, v in votes.items() if v >= self.settings.min_votes), key=lambda i: (-votes[i], i))
+        return ranked[:top]
+
