@@ -1,0 +1,125 @@
+"""Loop-closure precision and recall against ground-truth relative poses.
+
+A loop is a pair of frames ``(i, j)`` with an estimated relative pose ``i_T_j`` (the pose
+of frame j's sensor in frame i's sensor frame, metres). Against the ground truth
+``object_T_sensor``, ``i_T_j = inv(object_T_i) @ object_T_j``:
+
+* a reported loop is **correct** when its translation error is at most ``trans_tol_mm``
+  (0.3 mm) and its geodesic rotation error at most ``rot_tol_deg`` (1 degree);
+* **precision** = correct loops / reported loops;
+* **recall** = ground-truth loops found by a correct report / ground-truth loops, where
+  the ground-truth loops are the candidate pairs whose contact patches really overlap
+  (:func:`overlap_mm2`, at least ``min_overlap_mm2``), e.g. from :func:`gt_loop_pairs`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from tactile_slam.eval.tracking_metrics import geodesic_deg
+
+
+def relative_pose_errors(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Errors of estimated relative poses ``(K, 4, 4)`` for ``pairs`` ``(K, 2)`` against
+    ground truth ``(T, 4, 4)`` ``object_T_sensor``. Returns ``(trans_mm (K,), rot_deg (K,))``."""
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    i_T_j = np.asarray(i_T_j, dtype=np.float64).reshape(-1, 4, 4)
+    if len(pairs) != len(i_T_j):
+        raise ValueError(f"{len(pairs)} loop pairs but {len(i_T_j)} relative poses")
+    if len(pairs) and (pairs.min() < 0 or pairs.max() >= len(object_T_sensor)):
+        raise ValueError("loop pair index outside the ground-truth trajectory")
+    gt = np.linalg.inv(object_T_sensor[pairs[:, 0]]) @ object_T_sensor[pairs[:, 1]]
+    err = np.linalg.inv(gt) @ i_T_j
+    return np.linalg.norm(err[:, :3, 3], axis=1) * 1000.0, geodesic_deg(err[:, :3, :3], np.eye(3))
+
+
+def loop_precision_recall(pairs: np.ndarray, i_T_j: np.ndarray, object_T_sensor: np.ndarray,
+                          gt_pairs: np.ndarray | None = None, trans_tol_mm: float = 0.3,
+                          rot_tol_deg: float = 1.0) -> dict:
+    """Precision (and recall when ``gt_pairs`` is given) of reported loops.
+
+    Args:
+        pairs: ``(K, 2)`` reported frame pairs ``(i, j)``.
+        i_T_j: ``(K, 4, 4)`` their estimated relative poses, metres.
+        object_T_sensor: ``(T, 4, 4)`` ground truth.
+        gt_pairs: ``(G, 2)`` ground-truth loops (order within a pair is ignored).
+
+    Returns:
+        ``{"reported", "correct", "precision", "gt_loops", "found", "recall",
+        "trans_err_mm", "rot_err_deg"}`` (the last two: median over reported loops).
+    """
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    dt, dr = relative_pose_errors(i_T_j, pairs, object_T_sensor)
+    ok = (dt <= trans_tol_mm) & (dr <= rot_tol_deg)
+    out = {
+        "reported": int(len(pairs)),
+        "correct": int(ok.sum()),
+        "precision": float(ok.mean()) if len(pairs) else float("nan"),
+        "trans_err_mm": float(np.median(dt)) if len(pairs) else float("nan"),
+        "rot_err_deg": float(np.median(dr)) if len(pairs) else float("nan"),
+    }
+    if gt_pairs is not None:
+        gt = {tuple(sorted(p)) for p in np.asarray(gt_pairs, dtype=np.int64).reshape(-1, 2).tolist()}
+        found = gt & {tuple(sorted(p)) for p in pairs[ok].tolist()}
+        out.update({"gt_loops": len(gt), "found": len(found),
+                    "recall": len(found) / len(gt) if gt else float("nan")})
+    return out
+
+
+def overlap_mm2(height_i: np.ndarray, contact_i: np.ndarray, height_j: np.ndarray, contact_j: np.ndarray,
+                j_T_i: np.ndarray, mm_per_px: float, depth_tol_mm: float = 0.3) -> float:
+    """Area of frame i's contact patch that frame j also touches, in mm^2.
+
+    Each contact pixel of i becomes its surface point (method.md section 1.2), moves into
+    j's sensor frame with ``j_T_i``, and counts if it lands on a contact pixel of j whose
+    height is within ``depth_tol_mm`` of it.
+
+    Args:
+        height_i, height_j: ``(H, W)`` px; contact_i, contact_j: ``(H, W)`` bool.
+        j_T_i: ``(4, 4)`` metres.
+    """
+    h, w = contact_i.shape
+    s = mm_per_px / 1000.0
+    r, c = np.nonzero(contact_i)
+    if len(r) == 0:
+        return 0.0
+    p = np.stack([(c - (w - 1) / 2) * s, (r - (h - 1) / 2) * s, height_i[r, c] * s], -1)
+    q = p @ j_T_i[:3, :3].T + j_T_i[:3, 3]
+    cj = np.round(q[:, 0] / s + (w - 1) / 2).astype(np.int64)
+    rj = np.round(q[:, 1] / s + (h - 1) / 2).astype(np.int64)
+    inside = (cj >= 0) & (cj < w) & (rj >= 0) & (rj < h)
+    rj, cj, qz = rj[inside], cj[inside], q[inside, 2]
+    hit = contact_j[rj, cj] & (np.abs(qz - height_j[rj, cj] * s) <= depth_tol_mm * 1e-3)
+    return float(hit.sum()) * mm_per_px**2
+
+
+def gt_loop_pairs(candidates: np.ndarray, object_T_sensor: np.ndarray, height: np.ndarray, contact: np.ndarray,
+                  mm_per_px: float, min_overlap_mm2: float = 5.0, min_gap: int = 25) -> np.ndarray:
+    """Ground-truth loops among candidate frames: pairs at least ``min_gap`` frames apart
+    whose contact patches overlap by at least ``min_overlap_mm2`` (both directions'
+    smaller value).
+
+    Args:
+        candidates: ``(K,)`` frame indices (e.g. keyframes' video indices).
+        object_T_sensor: ``(T, 4, 4)``; height ``(T, H, W)`` px; contact ``(T, H, W)``.
+
+    Returns:
+        ``(G, 2)`` int64 pairs ``(i, j)`` with ``i < j``.
+    """
+    cand = np.unique(np.asarray(candidates, dtype=np.int64))
+    centres = object_T_sensor[cand, :3, 3]
+    reach = 0.03  # sensors more than 30 mm apart cannot share a patch
+    out = []
+    for a in range(len(cand)):
+        for b in range(a + 1, len(cand)):
+            i, j = cand[a], cand[b]
+            if j - i < min_gap or np.linalg.norm(centres[a] - centres[b]) > reach:
+                continue
+            j_T_i = np.linalg.inv(object_T_sensor[j]) @ object_T_sensor[i]
+            o1 = overlap_mm2(height[i], contact[i], height[j], contact[j], j_T_i, mm_per_px)
+            if o1 < min_overlap_mm2:
+                continue
+            o2 = overlap_mm2(height[j], contact[j], height[i], contact[i], np.linalg.inv(j_T_i), mm_per_px)
+            if min(o1, o2) >= min_overlap_mm2:
+                out.append((i, j))
+    return np.asarray(out, dtype=np.int64).reshape(-1, 2)
