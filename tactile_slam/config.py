@@ -115,7 +115,9 @@ class NormalFlowConfig:
     ``lm_damping`` is a Marquardt factor on the normal equations. A pair is
     degenerate (failed) when the smallest-to-largest eigenvalue ratio of its normal
     equations, translations scaled by the samples' RMS spread, is below
-    ``degenerate_eig`` (0 disables the test).
+    ``degenerate_eig`` (0 disables the test). ``coarse_factors`` adds coarse levels
+    (e.g. ``(4,)``: normal maps averaged over 4x4 blocks, at most
+    ``coarse_max_iters`` iterations each) that widen the basin for large motions.
     """
 
     n_samples: int | None = 3000
@@ -132,6 +134,8 @@ class NormalFlowConfig:
     lm_damping: float = 0.0
     degenerate_eig: float = 1e-6
     seed: int = 0
+    coarse_factors: tuple[int, ...] = ()
+    coarse_max_iters: int = 20
 
 
 @dataclass
@@ -151,6 +155,24 @@ class LoopConfig:
     ccs_threshold: float = 0.7
     scr_threshold: float = 0.3
     min_sift_inliers: int = 8
+    # detection (tactile_slam/loop/detector.py; docs/loops.md)
+    mode: str = "full"  # "full" | "only_sift" | "only_nf" | "image_sift" (method.md 9.5)
+    sift_backend: str = "opencv"  # "opencv" | "kornia"
+    sift_contrast_threshold: float = 0.02
+    sift_octave_layers: int = 3
+    sift_max_features: int = 512  # kornia backend only
+    ransac_iterations: int = 100
+    ransac_threshold_px: float = 3.0
+    ransac_confidence: float = 0.99
+    ransac_refine_iters: int = 10
+    max_candidates: int = 10  # keyframes matched per query when more are eligible
+    retrieval_neighbours: int = 5
+    retrieval_min_votes: int = 3
+    retrieval_exact_max: int = 4096  # descriptors searched exactly before a kd-tree is built
+    gate_margin_mm: float | None = 2.0  # pose gate within a group; None disables
+    max_init_rot_deg: float | None = None  # reject loops whose NF pose leaves the 2-D guess by more
+    max_init_trans_mm: float | None = None
+    verify_batch: int = 16  # NormalFlow pairs per batch
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
     coverage_depth_gate_mm: float | None = None  # count overlap only within this depth

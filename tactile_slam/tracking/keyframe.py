@@ -22,6 +22,7 @@ class Keyframe:
         prev_T_kf: ``(4, 4)`` float64, metres: this keyframe's pose in the previous
             keyframe of the same session (the odometry measurement); identity for a
             session head.
+        image: optional ``(H, W, 3)`` uint8 BGR image of the keyframe (GS-ImageSIFT).
     """
 
     id: int
@@ -29,6 +30,7 @@ class Keyframe:
     frame: Frame
     new_session: bool
     prev_T_kf: torch.Tensor
+    image: torch.Tensor | None = None
 
     @property
     def video_index(self) -> int:
