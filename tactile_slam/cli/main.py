@@ -14,6 +14,7 @@ COMMAND_MODULES = (
     "tactile_slam.cli.bench",
     "tactile_slam.cli.calibrate",
     "tactile_slam.cli.simulate",
+    "tactile_slam.cli.eval",
 )
 
 

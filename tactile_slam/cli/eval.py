@@ -1,0 +1,111 @@
+"""``tactile-slam eval RUN_DIR --gt EPISODE_DIR``: score a run against a simulated episode.
+
+The run's ``poses.npy`` (``(T, 4, 4)``, metres) holds each frame's sensor pose in the
+sensor frame of the run's reference frame, the first frame with a pose (the first
+contact frame of the main group), NaN where there is none. The episode's ``gt_poses.npy``
+is ``object_T_sensor``; it is re-expressed as ``ref_T_curr`` for the same reference.
+Metrics use the frames from the reference on that the ground truth has in contact.
+If the run holds ``reconstructed_mesh.ply`` (in the reference frame), the reconstruction
+is scored against ``object.ply`` too. Writes ``metrics.json`` and ``tracking_error.png``.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from tactile_slam.eval.tracking_metrics import AXES, per_axis_errors, tracking_report
+from tactile_slam.eval.trajectory import TrajectoryError, check_trajectory, relative_to, valid_mask
+from tactile_slam.sim.episode import read_episode, read_mesh
+
+RECON_FILE = "reconstructed_mesh.ply"
+
+
+def register(sub) -> None:
+    p = sub.add_parser("eval", help="score a run's poses (and reconstruction) against a simulated episode")
+    p.add_argument("run_dir", help="run output folder with poses.npy")
+    p.add_argument("--gt", required=True, help="episode folder written by `tactile-slam simulate`")
+    p.add_argument("--out", default=None, help="output folder (default: RUN_DIR)")
+    p.add_argument("--no-recon", action="store_true", help="skip reconstruction metrics")
+    p.add_argument("--touches", type=int, default=100, help="NCD touches")
+    p.set_defaults(func=run)
+
+
+def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, touches: int = 100) -> tuple[dict, dict]:
+    """Metrics of a run against an episode.
+
+    Returns:
+        ``(metrics, series)``: the JSON-ready metrics and ``{"frames", "errors" (N, 6)}``
+        per-axis errors over time for plotting.
+    """
+    run_dir = Path(run_dir)
+    poses_path = run_dir / "poses.npy"
+    if not poses_path.is_file():
+        raise TrajectoryError(f"run folder {run_dir} has no poses.npy")
+    est = check_trajectory(np.load(poses_path, allow_pickle=False), str(poses_path))
+    ep = read_episode(gt_dir)
+    if len(est) != len(ep):
+        raise TrajectoryError(f"run has {len(est)} frames but the episode has {len(ep)}")
+    has = valid_mask(est)
+    if not has.any():
+        raise TrajectoryError(f"{poses_path} has no frame with a pose")
+    ref = int(np.argmax(has))
+    gt = relative_to(ep.object_T_sensor, ref)[ref:]
+    est = est[ref:]
+    frames = ep.in_contact[ref:]
+    metrics = {
+        "run": str(run_dir), "episode": str(Path(gt_dir)), "kind": ep.meta.get("kind"),
+        "object": (ep.meta.get("object") or {}).get("name"), "reference_frame": ref,
+        "gt_first_contact_frame": ep.first_contact,
+        "tracking": tracking_report(est, gt, frames),
+    }
+    recon_path = run_dir / RECON_FILE
+    if recon and recon_path.is_file():
+        from tactile_slam.eval.recon_metrics import recon_report
+
+        metrics["reconstruction"] = recon_report(read_mesh(recon_path), ep.mesh(), ep.object_T_sensor[ref],
+                                                 n_touches=touches)
+    errors = per_axis_errors(est, gt)
+    errors[~frames] = np.nan
+    return metrics, {"frames": np.arange(ref, ref + len(est)), "errors": errors}
+
+
+def plot_errors(path: Path, frames: np.ndarray, errors: np.ndarray, fps: float, title: str) -> None:
+    """Per-axis absolute error over time: translations (mm) and rotations (deg)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = frames / fps
+    fig, axes = plt.subplots(2, 1, figsize=(9, 5), sharex=True)
+    for i, name in enumerate(AXES):
+        ax = axes[0] if i < 3 else axes[1]
+        ax.plot(t, errors[:, i], lw=0.8, label=name.split("_")[0])
+    axes[0].set_ylabel("|error| (mm)")
+    axes[1].set_ylabel("|error| (deg)")
+    axes[1].set_xlabel("time (s)")
+    for ax in axes:
+        ax.legend(loc="upper left", fontsize=8)
+        ax.grid(alpha=0.3)
+    axes[0].set_title(title)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def run(args) -> int:
+    metrics, series = evaluate_run(args.run_dir, args.gt, recon=not args.no_recon, touches=args.touches)
+    out = Path(args.out) if args.out else Path(args.run_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=2))
+    ep = read_episode(args.gt)
+    fps = float((ep.meta.get("sensor") or {}).get("fps", 25.0))
+    plot_errors(out / "tracking_error.png", series["frames"], series["errors"], fps,
+                f"{metrics['object']} {metrics['kind']}: per-axis tracking error")
+    mae = metrics["tracking"]["per_axis_mae"]
+    print("per-axis MAE: " + ", ".join(f"{k} {mae[k]:.3f}" for k in AXES) + f" over {mae['n_frames']} frames")
+    print(f"wrote {out / 'metrics.json'} and {out / 'tracking_error.png'}")
+    return 0
