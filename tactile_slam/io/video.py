@@ -1,8 +1,9 @@
 """Video files: a reader (:class:`VideoSource`) and a lossless writer (:func:`write_video`).
 
 Recordings are FFV1 AVI at the working size (method.md section 1.1); any container and
-codec that OpenCV's FFmpeg backend decodes is readable. FFV1 is intra-frame only, so
-seeking to a frame is exact.
+codec that OpenCV's FFmpeg backend decodes is readable. Random access is exact; nearby
+frames ahead are reached by decoding forward, because an OpenCV seek restarts decoding
+a few dozen frames before its target.
 """
 
 from __future__ import annotations
@@ -19,6 +20,8 @@ from tactile_slam.geometry.frame import InputError
 from tactile_slam.io.frames import RawFrame, SequenceSource
 
 VIDEO_SUFFIXES = (".avi", ".mkv", ".mp4", ".mov", ".m4v", ".webm")
+# Random access decodes forward over gaps up to this many frames instead of seeking.
+MAX_SKIP = 24
 
 
 def resize_bgr(image: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
@@ -118,11 +121,15 @@ class VideoSource(SequenceSource):
         return RawFrame(index=index, timestamp=index / self.fps, bgr=bgr)
 
     def frame(self, position: int) -> RawFrame:
-        # One capture per process (DataLoader workers reopen it); sequential access
-        # continues decoding, any other access seeks.
+        # One capture per process (DataLoader workers reopen it). A short jump ahead
+        # decodes forward; anything else seeks, which in OpenCV costs about as much as
+        # decoding MAX_SKIP frames (it restarts decoding well before the target).
         self._drop_inherited()
         if self._cap is None:
             self._cap, self._cap_pid, self._next = _open_capture(self.path), os.getpid(), 0
+        if 0 <= position - self._next <= MAX_SKIP:
+            while self._next < position and self._cap.grab():
+                self._next += 1
         if position != self._next:
             self._cap.set(cv2.CAP_PROP_POS_FRAMES, position)
         ok, image = self._cap.read()

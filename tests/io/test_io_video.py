@@ -89,6 +89,13 @@ class TestVideoSource:
             assert f.index == i % len(frames)
             assert np.array_equal(f.bgr, frames[i])
 
+    def test_far_jumps_seek_exactly(self, tmp_path, gel_frames):
+        long = gel_frames(60, (24, 32), noise=2.0, seed=4)
+        write_video(tmp_path / "long.avi", long, fps=25)
+        src = VideoSource(tmp_path / "long.avi")
+        for i in (0, 50, 51, 20, 59, 1, 30):
+            assert np.array_equal(src[i].bgr, long[i])
+
     def test_index_out_of_range(self, video):
         src = VideoSource(video)
         with pytest.raises(IndexError):
