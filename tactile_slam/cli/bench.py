@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import importlib
 
-BENCHMARKS = ("geometry",)
+BENCHMARKS = ("geometry", "io")
 
 
 def register(sub) -> None:
