@@ -1,0 +1,354 @@
+"""The pose graph: keyframe poses, prior and between factors, g2o I/O (method.md section 7.1).
+
+Nodes are keyframe ids mapped to ``start_T_kf`` (``(4, 4)`` float64, metres): the keyframe's
+pose in its group's "start" frame. Factors:
+
+* **prior** on node ``k``: ``start_T_k`` should equal ``Z``;
+* **between** ``(i, j)``: ``i_T_j`` should equal ``Z``; the error is
+  ``Log(Z^-1 . start_T_i^-1 . start_T_j)``.
+
+Every factor carries a diagonal noise ``sigma`` ``(6,)`` in the tangent order of
+:mod:`tactile_slam.posegraph.se3`, **[translation (m) x3, rotation (rad) x3]**. Edge data live in
+growable float64/int64 tensors so that the solver linearises every factor in one batch.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pypose as pp
+import torch
+
+from tactile_slam.config import PoseGraphConfig
+from tactile_slam.posegraph import se3
+
+EDGE_KINDS = ("odometry", "loop")
+_LOOP_MARKER = "# tactile-slam: EDGE_SE3:QUAT lines below are loop closures"
+
+
+class GraphError(ValueError):
+    """The pose graph is inconsistent (unknown node, duplicate node, bad sigma, bad file)."""
+
+
+@dataclass
+class EdgeArrays:
+    """Between factors as batched tensors (views, do not modify).
+
+    Attributes:
+        i, j: ``(E,)`` int64 node *rows* (not ids) of the two ends.
+        Z: ``(E, 7)`` SE3 LieTensor, measured ``i_T_j``.
+        sigma: ``(E, 6)`` float64 noise, [translation m x3, rotation rad x3].
+        loop: ``(E,)`` bool, True for loop closures, False for odometry.
+    """
+
+    i: torch.Tensor
+    j: torch.Tensor
+    Z: pp.LieTensor
+    sigma: torch.Tensor
+    loop: torch.Tensor
+
+
+@dataclass
+class PriorArrays:
+    """Prior factors as batched tensors: rows ``(P,)``, ``Z`` ``(P, 7)``, ``sigma`` ``(P, 6)``."""
+
+    rows: torch.Tensor
+    Z: pp.LieTensor
+    sigma: torch.Tensor
+
+
+class _Rows:
+    """A growable tensor with amortised O(1) appends along dim 0."""
+
+    def __init__(self, width: int | None, dtype: torch.dtype) -> None:
+        shape = (16,) if width is None else (16, width)
+        self.data = torch.zeros(shape, dtype=dtype)
+        self.n = 0
+
+    def extend(self, rows: torch.Tensor) -> None:
+        k = rows.shape[0]
+        if self.n + k > self.data.shape[0]:
+            cap = max(2 * self.data.shape[0], self.n + k)
+            grown = torch.zeros((cap,) + self.data.shape[1:], dtype=self.data.dtype)
+            grown[: self.n] = self.data[: self.n]
+            self.data = grown
+        self.data[self.n: self.n + k] = rows
+        self.n += k
+
+    def view(self) -> torch.Tensor:
+        return self.data[: self.n]
+
+
+def sigma_vector(sigma: Sequence[float] | torch.Tensor | None, default: torch.Tensor) -> torch.Tensor:
+    """Noise ``(6,)`` float64 from ``None`` (the default), 2 values (rot rad, trans m) or 6 values.
+
+    Six values are [translation m x3, rotation rad x3]; two values are (rotation, translation)
+    as in :class:`PoseGraphConfig`. Raises :class:`GraphError` unless all are finite and > 0.
+    """
+    if sigma is None:
+        return default.clone()
+    s = torch.as_tensor(sigma, dtype=torch.float64).flatten()
+    if s.numel() == 2:
+        s = torch.cat([s[1].repeat(3), s[0].repeat(3)])
+    if s.numel() != 6:
+        raise GraphError(f"sigma must have 2 or 6 values, got {s.numel()}")
+    if not (torch.isfinite(s).all() and (s > 0).all()):
+        raise GraphError(f"sigma must be finite and > 0, got {s.tolist()}")
+    return s
+
+
+class PoseGraph:
+    """Keyframe poses and their factors.
+
+    Args:
+        config: default noise (``sigma_rot_rad``, ``sigma_trans_m``) for factors added
+            without an explicit ``sigma``.
+    """
+
+    def __init__(self, config: PoseGraphConfig | None = None) -> None:
+        config = config or PoseGraphConfig()
+        self.default_sigma = sigma_vector((config.sigma_rot_rad, config.sigma_trans_m), torch.ones(6))
+        self._row: dict[int, int] = {}
+        self._ids = _Rows(None, torch.int64)
+        self._poses = _Rows(7, torch.float64)
+        self._ei = _Rows(None, torch.int64)
+        self._ej = _Rows(None, torch.int64)
+        self._eZ = _Rows(7, torch.float64)
+        self._esigma = _Rows(6, torch.float64)
+        self._eloop = _Rows(None, torch.bool)
+        self._priors: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
+
+    # ------------------------------------------------------------------ nodes
+    @property
+    def num_nodes(self) -> int:
+        return self._ids.n
+
+    @property
+    def num_edges(self) -> int:
+        return self._ei.n
+
+    @property
+    def ids(self) -> torch.Tensor:
+        """``(N,)`` int64 node ids in row order."""
+        return self._ids.view()
+
+    def __contains__(self, node_id: int) -> bool:
+        return int(node_id) in self._row
+
+    def rows(self, node_ids: Iterable[int] | int) -> torch.Tensor:
+        """Rows ``(K,)`` int64 of node ids; :class:`GraphError` names any unknown id."""
+        ids = [node_ids] if isinstance(node_ids, (int, np.integer)) else list(node_ids)
+        try:
+            return torch.tensor([self._row[int(k)] for k in ids], dtype=torch.int64)
+        except KeyError as exc:
+            raise GraphError(f"node {exc.args[0]} is not in the pose graph") from None
+
+    def add_node(self, node_id: int, start_T_kf: torch.Tensor | None = None) -> None:
+        """Add keyframe ``node_id`` with initial value ``start_T_kf`` ``(4, 4)`` (identity if None)."""
+        T = torch.eye(4, dtype=torch.float64) if start_T_kf is None else torch.as_tensor(start_T_kf)
+        if T.shape != (4, 4):
+            raise GraphError(f"start_T_kf must be (4, 4), got {tuple(T.shape)}")
+        self.add_nodes([node_id], T[None])
+
+    def add_nodes(self, node_ids: Sequence[int], start_T_kf: torch.Tensor) -> None:
+        """Add keyframes ``node_ids`` ``(K,)`` with initial values ``start_T_kf`` ``(K, 4, 4)``."""
+        node_ids = [int(k) for k in node_ids]
+        X = se3.from_matrix(start_T_kf).tensor()
+        if X.shape != (len(node_ids), 7):
+            raise GraphError(f"start_T_kf must be ({len(node_ids)}, 4, 4), got {tuple(start_T_kf.shape)}")
+        if len(set(node_ids)) != len(node_ids) or any(k in self._row for k in node_ids):
+            dup = next(k for n, k in enumerate(node_ids) if k in self._row or k in node_ids[:n])
+            raise GraphError(f"node {dup} is already in the pose graph")
+        for k in node_ids:
+            self._row[k] = len(self._row)
+        self._ids.extend(torch.tensor(node_ids, dtype=torch.int64))
+        self._poses.extend(X)
+
+    def pose(self, node_id: int) -> torch.Tensor:
+        """Current ``start_T_kf`` ``(4, 4)`` float64 of one node."""
+        return se3.to_matrix(pp.SE3(self._poses.data[self.rows(node_id)[0]]))
+
+    def poses(self, node_ids: Iterable[int] | None = None) -> torch.Tensor:
+        """Current ``start_T_kf`` ``(K, 4, 4)`` float64 of ``node_ids`` (all nodes if None)."""
+        X = self.pose_tensor if node_ids is None else pp.SE3(self._poses.view()[self.rows(node_ids)])
+        return se3.to_matrix(X)
+
+    @property
+    def pose_tensor(self) -> pp.LieTensor:
+        """All current poses ``(N, 7)`` as an SE3 LieTensor, in row order (a copy)."""
+        return pp.SE3(self._poses.view().clone())
+
+    def set_poses(self, rows: torch.Tensor, X: pp.LieTensor | torch.Tensor) -> None:
+        """Overwrite the poses at ``rows`` ``(K,)`` with SE3 values ``(K, 7)``."""
+        self._poses.data[rows] = X.tensor() if isinstance(X, pp.LieTensor) else X
+
+    def set_pose(self, node_id: int, start_T_kf: torch.Tensor) -> None:
+        """Overwrite one node's ``start_T_kf`` ``(4, 4)``."""
+        self.set_poses(self.rows(node_id), se3.from_matrix(start_T_kf)[None])
+
+    # ------------------------------------------------------------------ factors
+    def add_prior(self, node_id: int, start_T_kf: torch.Tensor | None = None,
+                  sigma: Sequence[float] | torch.Tensor | None = None) -> None:
+        """Anchor ``node_id`` at ``start_T_kf`` ``(4, 4)`` (identity if None); replaces an old prior."""
+        row = int(self.rows(node_id)[0])
+        T = torch.eye(4, dtype=torch.float64) if start_T_kf is None else start_T_kf
+        self._priors[row] = (se3.from_matrix(T).tensor(), sigma_vector(sigma, self.default_sigma))
+
+    def remove_prior(self, node_id: int) -> None:
+        """Drop the prior on ``node_id``; :class:`GraphError` if it has none."""
+        row = int(self.rows(node_id)[0])
+        if row not in self._priors:
+            raise GraphError(f"node {node_id} has no prior to remove")
+        del self._priors[row]
+
+    def has_prior(self, node_id: int) -> bool:
+        return int(self.rows(node_id)[0]) in self._priors
+
+    def add_between(self, i: int, j: int, i_T_j: torch.Tensor,
+                    sigma: Sequence[float] | torch.Tensor | None = None, kind: str = "odometry") -> int:
+        """Add the factor ``start_T_i^-1 . start_T_j = i_T_j`` ``(4, 4)``; returns the edge index.
+
+        ``kind`` is ``"odometry"`` (a known inlier) or ``"loop"`` (may be down-weighted by the
+        robust modes of the solver).
+        """
+        Z = torch.as_tensor(i_T_j)
+        if Z.shape != (4, 4):
+            raise GraphError(f"i_T_j must be (4, 4), got {tuple(Z.shape)}")
+        return self.add_betweens([i], [j], Z[None], sigma, kind)[0]
+
+    def add_betweens(self, i: Sequence[int], j: Sequence[int], i_T_j: torch.Tensor,
+                     sigma: Sequence[float] | torch.Tensor | None = None, kind: str = "odometry") -> list[int]:
+        """Batched :meth:`add_between`: ids ``(E,)``, ``i_T_j`` ``(E, 4, 4)``, one sigma and kind."""
+        if kind not in EDGE_KINDS:
+            raise GraphError(f"edge kind must be one of {EDGE_KINDS}, got {kind!r}")
+        ri, rj = self.rows(i), self.rows(j)
+        if ri.shape != rj.shape:
+            raise GraphError(f"got {ri.numel()} start nodes and {rj.numel()} end nodes")
+        if (ri == rj).any():
+            raise GraphError(f"between factor from node {int(self.ids[ri[ri == rj][0]])} to itself")
+        Z = se3.from_matrix(i_T_j).tensor()
+        if Z.shape != (ri.numel(), 7):
+            raise GraphError(f"i_T_j must be ({ri.numel()}, 4, 4), got {tuple(torch.as_tensor(i_T_j).shape)}")
+        first = self._ei.n
+        self._ei.extend(ri)
+        self._ej.extend(rj)
+        self._eZ.extend(Z)
+        self._esigma.extend(sigma_vector(sigma, self.default_sigma).expand(ri.numel(), 6))
+        self._eloop.extend(torch.full((ri.numel(),), kind == "loop"))
+        return list(range(first, self._ei.n))
+
+    @property
+    def edges(self) -> EdgeArrays:
+        return EdgeArrays(self._ei.view(), self._ej.view(), pp.SE3(self._eZ.view()),
+                          self._esigma.view(), self._eloop.view())
+
+    @property
+    def priors(self) -> PriorArrays:
+        rows = sorted(self._priors)
+        if not rows:
+            return PriorArrays(torch.zeros(0, dtype=torch.int64), pp.identity_SE3(0, dtype=torch.float64),
+                               torch.zeros(0, 6, dtype=torch.float64))
+        Z = torch.stack([self._priors[r][0] for r in rows])
+        sigma = torch.stack([self._priors[r][1] for r in rows])
+        return PriorArrays(torch.tensor(rows, dtype=torch.int64), pp.SE3(Z), sigma)
+
+    # ------------------------------------------------------------------ g2o
+    def to_g2o(self, path: str | Path) -> Path:
+        """Write ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT`` / ``EDGE_SE3_PRIOR`` lines (metres).
+
+        Information matrices are ``diag(sigma^-2)`` over the [translation, rotation] tangent,
+        written as the 21 upper-triangular entries row by row (GTSAM's reading of g2o). Loop
+        closures follow a marker comment so that :meth:`from_g2o` restores their kind.
+        """
+        path = Path(path)
+        lines = []
+        ids = self.ids.tolist()
+        for k, x in zip(ids, self._poses.view().tolist()):
+            lines.append("VERTEX_SE3:QUAT %d %s" % (k, _fmt(x)))
+        pr = self.priors
+        for r, z, s in zip(pr.rows.tolist(), pr.Z.tensor().tolist(), pr.sigma):
+            lines.append("EDGE_SE3_PRIOR %d %s %s" % (ids[r], _fmt(z), _fmt(_info_upper(s))))
+        e = self.edges
+        for want_loop in (False, True):
+            if want_loop and bool(e.loop.any()):
+                lines.append(_LOOP_MARKER)
+            sel = torch.nonzero(e.loop == want_loop).flatten().tolist()
+            for n in sel:
+                lines.append("EDGE_SE3:QUAT %d %d %s %s" % (
+                    ids[int(e.i[n])], ids[int(e.j[n])], _fmt(e.Z.tensor()[n].tolist()),
+                    _fmt(_info_upper(e.sigma[n]))))
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("\n".join(lines) + "\n")
+        return path
+
+    @classmethod
+    def from_g2o(cls, path: str | Path, config: PoseGraphConfig | None = None) -> "PoseGraph":
+        """Read a file written by :meth:`to_g2o` (or any g2o SE3:QUAT file).
+
+        Off-diagonal information entries are ignored (noise is diagonal here). Without the loop
+        marker, an edge is odometry when its ids are consecutive and a loop otherwise.
+        """
+        path = Path(path)
+        if not path.is_file():
+            raise GraphError(f"g2o file not found: {path}")
+        g = cls(config)
+        marker_seen = False
+        edges = []
+        for n, raw in enumerate(path.read_text().splitlines(), 1):
+            line = raw.strip()
+            if not line:
+                continue
+            if line == _LOOP_MARKER:
+                marker_seen = True
+                continue
+            if line.startswith("#"):
+                continue
+            tok = line.split()
+            try:
+                if tok[0] == "VERTEX_SE3:QUAT" and len(tok) == 9:
+                    g.add_node(int(tok[1]), _matrix(tok[2:9]))
+                elif tok[0] == "EDGE_SE3_PRIOR" and len(tok) == 30:
+                    g.add_prior(int(tok[1]), _matrix(tok[2:9]), _sigma_from_info(tok[9:30]))
+                elif tok[0] == "EDGE_SE3:QUAT" and len(tok) == 31:
+                    edges.append((int(tok[1]), int(tok[2]), _matrix(tok[3:10]), _sigma_from_info(tok[10:31]),
+                                   marker_seen))
+                else:
+                    raise GraphError(f"unsupported or malformed record {tok[0]!r}")
+            except (ValueError, IndexError) as exc:
+                raise GraphError(f"{path}:{n}: {exc}") from None
+        any_marker = marker_seen
+        for i, j, Z, s, after_marker in edges:
+            loop = after_marker if any_marker else abs(j - i) != 1
+            g.add_between(i, j, Z, s, kind="loop" if loop else "odometry")
+        return g
+
+
+def _fmt(values: Iterable[float]) -> str:
+    return " ".join(repr(float(v)) for v in values)
+
+
+def _info_upper(sigma: torch.Tensor) -> list[float]:
+    info = torch.diag(sigma.double() ** -2)
+    iu = torch.triu_indices(6, 6)
+    return info[iu[0], iu[1]].tolist()
+
+
+def _sigma_from_info(tokens: Sequence[str]) -> torch.Tensor:
+    upper = [float(t) for t in tokens]
+    diag_pos = [0, 6, 11, 15, 18, 20]
+    d = torch.tensor([upper[p] for p in diag_pos], dtype=torch.float64)
+    if not (d > 0).all():
+        raise GraphError("information matrix must have a positive diagonal")
+    return d.rsqrt()
+
+
+def _matrix(tokens: Sequence[str]) -> torch.Tensor:
+    x = torch.tensor([float(t) for t in tokens], dtype=torch.float64)
+    q = x[3:]
+    if not torch.isfinite(x).all() or q.norm() < 1e-12:
+        raise GraphError("pose must be finite with a non-zero quaternion")
+    x[3:] = q / q.norm()
+    return se3.to_matrix(pp.SE3(x))

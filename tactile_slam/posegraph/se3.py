@@ -1,0 +1,184 @@
+"""Batched SE(3) helpers for the pose graph, on top of pypose LieTensors (float64).
+
+Poses are stored as pypose ``SE3`` LieTensors ``(..., 7)`` = ``[tx, ty, tz, qx, qy, qz, qw]``
+(translation in metres, unit quaternion). Tangent vectors are pypose ``se3`` vectors
+``(..., 6)`` ordered **[translation, rotation]** = ``[rho, phi]``; GTSAM orders them
+[rotation, translation], so every 6-vector and 6x6 block in this package (noise sigmas,
+information matrices, Jacobians) follows the pypose/g2o order instead.
+
+Perturbations are on the right: ``T <- T . Exp(delta)``.
+"""
+
+from __future__ import annotations
+
+import pypose as pp
+import torch
+
+
+class PoseError(ValueError):
+    """A pose is malformed (wrong shape, not finite, not a rigid transform)."""
+
+
+def skew(v: torch.Tensor) -> torch.Tensor:
+    """Cross-product matrices ``(..., 3, 3)`` of vectors ``(..., 3)``."""
+    x, y, z = v.unbind(-1)
+    o = torch.zeros_like(x)
+    return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(v.shape[:-1] + (3, 3))
+
+
+def from_matrix(T: torch.Tensor, check: bool = True) -> pp.LieTensor:
+    """SE3 LieTensor ``(..., 7)`` from homogeneous matrices ``(..., 4, 4)`` (float64).
+
+    Raises :class:`PoseError` when the input is not ``(..., 4, 4)``, is not finite, or is
+    not a rigid transform (rotation part not orthonormal within 1e-6, last row not
+    ``[0, 0, 0, 1]``).
+    """
+    T = torch.as_tensor(T, dtype=torch.float64)
+    if T.ndim < 2 or T.shape[-2:] != (4, 4):
+        raise PoseError(f"pose must have shape (..., 4, 4), got {tuple(T.shape)}")
+    if not torch.isfinite(T).all():
+        raise PoseError("pose contains NaN or inf")
+    if check and T.numel():
+        R = T[..., :3, :3]
+        eye = torch.eye(3, dtype=T.dtype, device=T.device)
+        bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
+        if (R.transpose(-1, -2) @ R - eye).abs().amax().item() > 1e-6:
+            raise PoseError("pose rotation is not orthonormal")
+        if (torch.linalg.det(R) < 0).any():
+            raise PoseError("pose rotation is a reflection (det < 0)")
+        if (T[..., 3, :] - bottom).abs().amax().item() > 1e-9:
+            raise PoseError("pose last row must be [0, 0, 0, 1]")
+    x = torch.cat([T[..., :3, 3], rotmat_to_quat(T[..., :3, :3])], dim=-1)
+    return pp.SE3(x)
+
+
+def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """Unit quaternions ``(..., 4)`` = ``[x, y, z, w]`` with ``w >= 0`` of rotations ``(..., 3, 3)``.
+
+    Shepperd's method: of the four algebraically equivalent formulas, each element uses the
+    one with the largest pivot, so the result is accurate for every rotation angle.
+    """
+    m = R.reshape(R.shape[:-2] + (9,)).unbind(-1)
+    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
+    cand = torch.stack([
+        torch.stack([1 + m00 - m11 - m22, m01 + m10, m02 + m20, m21 - m12], -1),
+        torch.stack([m01 + m10, 1 - m00 + m11 - m22, m12 + m21, m02 - m20], -1),
+        torch.stack([m02 + m20, m12 + m21, 1 - m00 - m11 + m22, m10 - m01], -1),
+        torch.stack([m21 - m12, m02 - m20, m10 - m01, 1 + m00 + m11 + m22], -1),
+    ], -2)
+    pivot = torch.diagonal(cand, dim1=-2, dim2=-1).argmax(-1)
+    q = torch.gather(cand, -2, pivot[..., None, None].expand(pivot.shape + (1, 4))).squeeze(-2)
+    q = q / q.norm(dim=-1, keepdim=True)
+    return torch.where(q[..., 3:] < 0, -q, q)
+
+
+def to_matrix(X: pp.LieTensor) -> torch.Tensor:
+    """Homogeneous matrices ``(..., 4, 4)`` of SE3 LieTensors ``(..., 7)``."""
+    X = pp.SE3(X)
+    R = quat_to_rotmat(X.tensor()[..., 3:])
+    T = torch.zeros(X.shape[:-1] + (4, 4), dtype=X.dtype, device=X.device)
+    T[..., :3, :3] = R
+    T[..., :3, 3] = X.tensor()[..., :3]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` = ``[x, y, z, w]``."""
+    x, y, z, w = q.unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y),
+    ], dim=-1).reshape(q.shape[:-1] + (3, 3))
+
+
+def adjoint(X: pp.LieTensor) -> torch.Tensor:
+    """Adjoint matrices ``(..., 6, 6)`` of SE3 poses ``(..., 7)``, tangent [rho, phi].
+
+    ``Exp(Ad(X) xi) = X . Exp(xi) . X^-1``; ``Ad = [[R, [t]x R], [0, R]]``.
+    """
+    t = X.tensor()[..., :3]
+    R = quat_to_rotmat(X.tensor()[..., 3:])
+    A = torch.zeros(X.shape[:-1] + (6, 6), dtype=X.dtype, device=X.device)
+    A[..., :3, :3] = R
+    A[..., 3:, 3:] = R
+    A[..., :3, 3:] = skew(t) @ R
+    return A
+
+
+def _so3_left_jacobian_inv(phi: torch.Tensor) -> torch.Tensor:
+    K = skew(phi)
+    theta2 = (phi * phi).sum(-1)[..., None, None]
+    theta = theta2.sqrt()
+    small = theta < 1e-4
+    safe = torch.where(small, torch.ones_like(theta), theta)
+    big = (1.0 - safe * torch.cos(safe / 2) / (2 * torch.sin(safe / 2))) / (safe * safe)
+    c = torch.where(small, 1.0 / 12.0 + theta2 / 720.0, big)
+    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
+    return eye - 0.5 * K + c * (K @ K)
+
+
+def _se3_q(rho: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
+    """The 3x3 coupling block Q(rho, phi) of the SE(3) left Jacobian (Barfoot, eq. 7.86)."""
+    P, R = skew(phi), skew(rho)
+    theta2 = (phi * phi).sum(-1)[..., None, None]
+    theta = theta2.sqrt()
+    small = theta < 1e-3
+    s = torch.where(small, torch.ones_like(theta), theta)
+    s2, s3, s4, s5 = s * s, s ** 3, s ** 4, s ** 5
+    c1 = torch.where(small, 1 / 6 - theta2 / 120, (s - torch.sin(s)) / s3)
+    c2 = torch.where(small, 1 / 24 - theta2 / 720, (s2 + 2 * torch.cos(s) - 2) / (2 * s4))
+    c3 = torch.where(small, 1 / 120 - theta2 / 2520, (2 * s - 3 * torch.sin(s) + s * torch.cos(s)) / (2 * s5))
+    PR, RP, PP = P @ R, R @ P, P @ P
+    PRP = PR @ P
+    return (0.5 * R + c1 * (PR + RP + PRP) + c2 * (PP @ R + RP @ P - 3 * PRP)
+            + c3 * (PRP @ P + PP @ R @ P))
+
+
+def right_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
+    """Inverse right Jacobians ``(..., 6, 6)`` of se3 vectors ``(..., 6)`` = [rho, phi].
+
+    ``Log(Exp(xi) . Exp(d)) = xi + Jr^-1(xi) d + O(|d|^2)``; ``Jr^-1(xi) = Jl^-1(-xi)``.
+    """
+    xi = torch.as_tensor(xi)
+    rho, phi = -xi[..., :3], -xi[..., 3:]
+    Jinv = _so3_left_jacobian_inv(phi)
+    Q = _se3_q(rho, phi)
+    out = torch.zeros(xi.shape[:-1] + (6, 6), dtype=xi.dtype, device=xi.device)
+    out[..., :3, :3] = Jinv
+    out[..., 3:, 3:] = Jinv
+    out[..., :3, 3:] = -Jinv @ Q @ Jinv
+    return out
+
+
+def between_error(Z: pp.LieTensor, Ti: pp.LieTensor, Tj: pp.LieTensor) -> torch.Tensor:
+    """Between-factor errors ``e = Log(Z^-1 . Ti^-1 . Tj)`` ``(..., 6)`` [rho, phi].
+
+    ``Z`` is the measured ``i_T_j``; ``Ti``, ``Tj`` are ``start_T_i``, ``start_T_j``.
+    """
+    return (Z.Inv() * Ti.Inv() * Tj).Log().tensor()
+
+
+def between_jacobians(Z: pp.LieTensor, Ti: pp.LieTensor, Tj: pp.LieTensor
+                      ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Errors ``(E, 6)`` and their Jacobians ``(E, 6, 6)`` w.r.t. right perturbations of Ti, Tj.
+
+    With ``e = Log(Z^-1 Ti^-1 Tj)``: ``de/d(delta_j) = Jr^-1(e)`` and
+    ``de/d(delta_i) = -Jr^-1(e) . Ad(Tj^-1 Ti)``.
+    """
+    e = between_error(Z, Ti, Tj)
+    Jr_inv = right_jacobian_inv(e)
+    Ji = -Jr_inv @ adjoint(Tj.Inv() * Ti)
+    return e, Ji, Jr_inv
+
+
+def prior_jacobian(Z: pp.LieTensor, Ti: pp.LieTensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Prior errors ``e = Log(Z^-1 Ti)`` ``(P, 6)`` and Jacobians ``Jr^-1(e)`` ``(P, 6, 6)``."""
+    e = (Z.Inv() * Ti).Log().tensor()
+    return e, right_jacobian_inv(e)
+
+
+def retract(X: pp.LieTensor, delta: torch.Tensor) -> pp.LieTensor:
+    """Right retraction ``X . Exp(delta)``, ``X (..., 7)``, ``delta (..., 6)`` [rho, phi]."""
+    return X * pp.se3(delta).Exp()

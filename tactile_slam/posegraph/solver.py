@@ -1,0 +1,289 @@
+"""Sparse Levenberg-Marquardt on SE(3) for pose graphs (method.md section 7).
+
+Every factor is linearised in one batch (:mod:`tactile_slam.posegraph.se3`), the whitened
+6x6 blocks are summed into block-sparse normal equations ``(J^T W J + lambda I) delta = -J^T W e``
+whose nested-dissection ordering is computed once per sparsity pattern, and the system is
+solved by the multifrontal block Cholesky of :mod:`tactile_slam.posegraph.cholesky` (SciPy's
+SuperLU was 10-30x slower on 5,000-keyframe graphs: it runs on a reference BLAS).
+
+The cost is GTSAM's: ``0.5 sum rho(|e / sigma|^2)``; the LM schedule follows GTSAM's defaults
+(at most 100 iterations, relative and absolute decrease tolerances 1e-5, initial lambda 1e-5,
+factor 10, upper bound 1e5). Poses move by right perturbation ``T <- T . Exp(delta)``.
+
+Loop factors can be robustified (``config.robust``): ``"huber"`` or ``"cauchy"`` kernels by
+iteratively reweighted least squares, or ``"gnc"``, graduated non-convexity with a truncated
+least-squares cost that ends with each loop accepted or rejected. Odometry factors and
+priors are always plain least squares (known inliers).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pypose as pp
+import scipy.sparse as sp
+import scipy.sparse.csgraph as csgraph
+import torch
+
+from tactile_slam.config import PoseGraphConfig
+from tactile_slam.posegraph import robust, se3
+from tactile_slam.posegraph.cholesky import BlockCholesky, FactorError
+from tactile_slam.posegraph.graph import GraphError, PoseGraph
+
+ROBUST_MODES = ("none", "huber", "cauchy", "gnc")
+
+
+class SolverError(ValueError):
+    """The problem is ill-posed (a connected group without a prior, non-finite values)."""
+
+
+@dataclass
+class SolveReport:
+    """What one solve did.
+
+    Attributes:
+        iterations: accepted LM steps (summed over GNC stages).
+        cost_initial / cost_final: ``0.5 sum rho(|e/sigma|^2)`` before and after.
+        converged: a tolerance was met (False when stopped by the iteration cap or lambda bound).
+        n_variables / n_factors: poses optimised, factors touching them.
+        time_s: wall-clock seconds.
+        loop_weights: ``(E,)`` float64 final weight of every edge of the graph (1 for odometry
+            and for edges outside the solved set; 0..1 for loops under a robust mode).
+        rejected_loops: edge indices of loops whose final weight is below 0.5.
+    """
+
+    iterations: int = 0
+    cost_initial: float = 0.0
+    cost_final: float = 0.0
+    converged: bool = True
+    n_variables: int = 0
+    n_factors: int = 0
+    time_s: float = 0.0
+    loop_weights: torch.Tensor = field(default_factory=lambda: torch.zeros(0, dtype=torch.float64))
+    rejected_loops: list[int] = field(default_factory=list)
+
+
+class _Problem:
+    """The factors touching a set of variable rows, with a fixed block-sparse pattern.
+
+    ``var_rows`` ``(n,)`` are graph rows being optimised; all other poses stay fixed. The
+    normal matrix is ``6n x 6n`` with one 6x6 block per slot; the slots and the Cholesky
+    ordering (on the poses' translations at construction) are built once here.
+    """
+
+    def __init__(self, graph: PoseGraph, var_rows: torch.Tensor) -> None:
+        n_all = graph.num_nodes
+        self.var_rows = var_rows
+        self.n = n = var_rows.numel()
+        local = torch.full((n_all,), -1, dtype=torch.int64)
+        local[var_rows] = torch.arange(n)
+        e = graph.edges
+        li, lj = local[e.i], local[e.j]
+        keep = (li >= 0) | (lj >= 0)
+        self.edge_idx = torch.nonzero(keep).flatten()
+        self.ei, self.ej = e.i[keep], e.j[keep]
+        self.li, self.lj = li[keep], lj[keep]
+        self.Z = pp.SE3(e.Z.tensor()[keep])
+        self.sigma = e.sigma[keep]
+        self.loop = e.loop[keep]
+        pr = graph.priors
+        pkeep = local[pr.rows] >= 0
+        self.prow, self.plocal = pr.rows[pkeep], local[pr.rows[pkeep]]
+        self.pZ, self.psigma = pp.SE3(pr.Z.tensor()[pkeep]), pr.sigma[pkeep]
+        self._check_anchored()
+        self._build_pattern(graph.pose_tensor.tensor()[var_rows, :3].numpy())
+
+    def _check_anchored(self) -> None:
+        """Every connected group of variables must contain a prior or touch a fixed pose."""
+        n = self.n
+        both = (self.li >= 0) & (self.lj >= 0)
+        a, b = self.li[both].numpy(), self.lj[both].numpy()
+        adj = sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n))
+        ncomp, label = csgraph.connected_components(adj, directed=False)
+        anchored = np.zeros(ncomp, dtype=bool)
+        anchored[label[self.plocal.numpy()]] = True
+        one_fixed = ~both
+        ends = torch.where(self.li[one_fixed] >= 0, self.li[one_fixed], self.lj[one_fixed]).numpy()
+        anchored[label[ends]] = True
+        if not anchored.all():
+            k = int(np.nonzero(~anchored)[0][0])
+            members = self.var_rows[torch.from_numpy(np.nonzero(label == k)[0][:5])]
+            raise SolverError(f"a connected group of {int((label == k).sum())} poses has no prior "
+                              f"(gauge undefined); it contains rows {members.tolist()}")
+
+    def _build_pattern(self, coords: np.ndarray) -> None:
+        n = self.n
+        both = (self.li >= 0) & (self.lj >= 0)
+        diag_keys = torch.arange(n) * (n + 1)
+        off = torch.cat([self.li[both] * n + self.lj[both], self.lj[both] * n + self.li[both]])
+        keys, inv = torch.unique(torch.cat([diag_keys, off]), return_inverse=True)
+        self.n_blocks = keys.numel()
+        self.slot_diag = inv[:n]
+        m = int(both.sum())
+        self.slot_ij_both, self.slot_ji_both = inv[n:n + m], inv[n + m:]
+        self.both = both
+        self.chol = BlockCholesky(n, (keys // n).numpy(), (keys % n).numpy(), coords)
+
+    # -------------------------------------------------------------- evaluation
+    def residuals(self, X: pp.LieTensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Squared whitened norms of the edges ``(E',)`` and priors ``(P',)`` at poses ``X`` ``(N, 7)``."""
+        e = se3.between_error(self.Z, X[self.ei], X[self.ej]) / self.sigma
+        p = se3.between_error(self.pZ, pp.identity_SE3(self.prow.numel(), dtype=torch.float64),
+                              X[self.prow]) / self.psigma
+        return (e * e).sum(-1), (p * p).sum(-1)
+
+    def linearize(self, X: pp.LieTensor, w: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+        """Blocks ``(S, 6, 6)`` of ``J^T W J`` and the gradient ``J^T W e`` ``(6n,)`` at ``X``.
+
+        ``w`` ``(E',)`` are per-edge weights (IRLS or GNC); priors have weight 1.
+        """
+        e, Ji, Jj = se3.between_jacobians(self.Z, X[self.ei], X[self.ej])
+        s = self.sigma[:, :, None]
+        e, Ji, Jj = e / self.sigma, Ji / s, Jj / s
+        sw = w.sqrt()[:, None]
+        e, Ji, Jj = e * sw, Ji * sw[..., None], Jj * sw[..., None]
+        ep, Jp = se3.prior_jacobian(self.pZ, X[self.prow])
+        ep, Jp = ep / self.psigma, Jp / self.psigma[:, :, None]
+
+        blocks = torch.zeros(self.n_blocks, 6, 6, dtype=torch.float64)
+        g = torch.zeros(self.n, 6, dtype=torch.float64)
+        vi, vj = self.li >= 0, self.lj >= 0
+        JiT, JjT = Ji.transpose(1, 2), Jj.transpose(1, 2)
+        blocks.index_add_(0, self.slot_diag[self.li[vi]], JiT[vi] @ Ji[vi])
+        blocks.index_add_(0, self.slot_diag[self.lj[vj]], JjT[vj] @ Jj[vj])
+        Hij = JiT[self.both] @ Jj[self.both]
+        blocks.index_add_(0, self.slot_ij_both, Hij)
+        blocks.index_add_(0, self.slot_ji_both, Hij.transpose(1, 2))
+        blocks.index_add_(0, self.slot_diag[self.plocal], Jp.transpose(1, 2) @ Jp)
+        g.index_add_(0, self.li[vi], (JiT[vi] @ e[vi, :, None]).squeeze(-1))
+        g.index_add_(0, self.lj[vj], (JjT[vj] @ e[vj, :, None]).squeeze(-1))
+        g.index_add_(0, self.plocal, (Jp.transpose(1, 2) @ ep[:, :, None]).squeeze(-1))
+        return blocks.numpy(), g.numpy().reshape(-1)
+
+    def step(self, blocks: np.ndarray, g: np.ndarray, lam: float) -> torch.Tensor | None:
+        """Solve ``(H + lam I) delta = -g``; ``delta`` ``(n, 6)``, or None if not positive definite."""
+        damped = blocks.copy()
+        damped[self.slot_diag.numpy()] += lam * np.eye(6)
+        try:
+            self.chol.factor(damped)
+        except FactorError:
+            return None
+        return torch.from_numpy(self.chol.solve(-g)).reshape(self.n, 6)
+
+    def retract(self, X: pp.LieTensor, delta: torch.Tensor) -> pp.LieTensor:
+        Y = X.clone()
+        Y[self.var_rows] = se3.retract(X[self.var_rows], delta)
+        return pp.SE3(Y)
+
+
+def _weights_and_cost(prob: _Problem, X: pp.LieTensor, kernel: str, k2: float,
+                      fixed_w: torch.Tensor | None) -> tuple[torch.Tensor, float]:
+    """Per-edge weights ``(E',)`` for linearisation and the total cost at ``X``."""
+    s_e, s_p = prob.residuals(X)
+    if fixed_w is not None:
+        return fixed_w, 0.5 * float((fixed_w * s_e).sum() + s_p.sum())
+    rho = torch.where(prob.loop, robust.kernel_cost(kernel, s_e, k2), s_e)
+    w = torch.where(prob.loop, robust.kernel_weight(kernel, s_e, k2), torch.ones_like(s_e))
+    return w, 0.5 * float(rho.sum() + s_p.sum())
+
+
+def _levenberg_marquardt(prob: _Problem, X: pp.LieTensor, config: PoseGraphConfig, kernel: str,
+                         fixed_w: torch.Tensor | None, max_iters: int
+                         ) -> tuple[pp.LieTensor, int, float, float, bool]:
+    """GTSAM-style LM; returns (poses, accepted steps, initial cost, final cost, converged)."""
+    k2 = config.robust_chi2
+    w, cost = _weights_and_cost(prob, X, kernel, k2, fixed_w)
+    cost0 = cost
+    lam = config.lambda_init
+    it = 0
+    converged = cost <= 0.0
+    while it < max_iters and not converged:
+        data, g = prob.linearize(X, w)
+        while True:
+            delta = prob.step(data, g, lam)
+            if delta is not None:
+                X_new = prob.retract(X, delta)
+                w_new, cost_new = _weights_and_cost(prob, X_new, kernel, k2, fixed_w)
+                if np.isfinite(cost_new) and cost_new <= cost:
+                    break
+            lam *= config.lambda_factor
+            if lam > config.lambda_max:
+                return X, it, cost0, cost, False
+        it += 1
+        decrease = cost - cost_new
+        X, w, cost = X_new, w_new, cost_new
+        lam = max(lam / config.lambda_factor, 1e-300)
+        converged = decrease <= config.abs_tol or decrease <= config.rel_tol * (cost + decrease) or cost <= 0
+    return X, it, cost0, cost, converged
+
+
+def solve(graph: PoseGraph, config: PoseGraphConfig | None = None,
+          rows: torch.Tensor | None = None, max_iters: int | None = None) -> SolveReport:
+    """Optimise the poses of ``graph`` in place and report what happened.
+
+    Args:
+        graph: the pose graph; its current poses are the initial values (warm start).
+        config: solver settings and robust mode; defaults to :class:`PoseGraphConfig`.
+        rows: ``(n,)`` graph rows to optimise (e.g. one connected group); all other poses
+            are held fixed. ``None`` optimises every node.
+        max_iters: cap on accepted LM steps per stage (``config.max_iters`` if None).
+
+    Raises :class:`SolverError` when a connected group of variables has no prior and no fixed
+    neighbour, and :class:`GraphError` for an unknown robust mode.
+    """
+    t0 = time.perf_counter()
+    config = config or PoseGraphConfig()
+    if config.robust not in ROBUST_MODES:
+        raise GraphError(f"robust mode must be one of {ROBUST_MODES}, got {config.robust!r}")
+    max_iters = config.max_iters if max_iters is None else max_iters
+    report = SolveReport(loop_weights=torch.ones(graph.num_edges, dtype=torch.float64))
+    if graph.num_nodes == 0:
+        return report
+    rows = torch.arange(graph.num_nodes) if rows is None else torch.as_tensor(rows, dtype=torch.int64)
+    if rows.numel() == 0:
+        return report
+    prob = _Problem(graph, torch.unique(rows))
+    report.n_variables, report.n_factors = prob.n, prob.edge_idx.numel() + prob.prow.numel()
+    X = graph.pose_tensor
+    if not torch.isfinite(X.tensor()).all():
+        raise SolverError("initial poses contain NaN or inf")
+
+    if config.robust == "gnc":
+        X, w, its, c0, c1, conv = _gnc(prob, X, config, max_iters)
+    else:
+        X, its, c0, c1, conv = _levenberg_marquardt(prob, X, config, config.robust, None, max_iters)
+        w, _ = _weights_and_cost(prob, X, config.robust, config.robust_chi2, None)
+    graph.set_poses(prob.var_rows, X[prob.var_rows])
+    report.iterations, report.cost_initial, report.cost_final, report.converged = its, c0, c1, conv
+    report.loop_weights[prob.edge_idx] = w
+    report.rejected_loops = prob.edge_idx[prob.loop & (w < 0.5)].tolist()
+    report.time_s = time.perf_counter() - t0
+    return report
+
+
+def _gnc(prob: _Problem, X: pp.LieTensor, config: PoseGraphConfig, max_iters: int
+         ) -> tuple[pp.LieTensor, torch.Tensor, int, float, float, bool]:
+    """Graduated non-convexity with TLS on loop factors (odometry and priors are inliers).
+
+    Starts from the least-squares solution, then alternates closed-form weight updates with
+    weighted LM, growing ``mu`` by ``config.gnc_mu_step`` until the weights are binary.
+    """
+    c2 = config.robust_chi2
+    X, its, c0, _, conv = _levenberg_marquardt(prob, X, config, "none", None, max_iters)
+    s_e, _ = prob.residuals(X)
+    mu = robust.gnc_initial_mu(s_e[prob.loop], c2)
+    w = torch.ones_like(s_e)
+    for _ in range(config.gnc_max_iters):
+        w = torch.where(prob.loop, robust.gnc_tls_weights(s_e, mu, c2), torch.ones_like(s_e))
+        X, k, _, _, conv = _levenberg_marquardt(prob, X, config, "none", w, max_iters)
+        its += k
+        s_e, _ = prob.residuals(X)
+        lw = w[prob.loop]
+        if mu == float("inf") or bool(((lw < 1e-3) | (lw > 1 - 1e-3)).all()):
+            break
+        mu *= config.gnc_mu_step
+    w = torch.where(prob.loop, (w >= 0.5).to(w.dtype), w)
+    X, k, _, cost, conv = _levenberg_marquardt(prob, X, config, "none", w, max_iters)
+    return X, w, its + k, c0, cost, conv
