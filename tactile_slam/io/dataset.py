@@ -7,6 +7,7 @@ from __future__ import annotations
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, fields, replace
 
+import numpy as np
 import torch
 from torch.utils.data import Dataset
 
@@ -49,7 +50,12 @@ class FrameBatch:
 
 
 def _stack(frames: Sequence[RawFrame], attr: str, dtype: torch.dtype) -> torch.Tensor:
-    return torch.stack([torch.as_tensor(getattr(f, attr)) for f in frames]).to(dtype)
+    items = [getattr(f, attr) for f in frames]
+    if all(isinstance(x, np.ndarray) for x in items):
+        # numpy's single-threaded copy: torch.stack's parallel copy of a few MB costs
+        # far more on a loaded machine
+        return torch.from_numpy(np.stack(items)).to(dtype)
+    return torch.stack([torch.as_tensor(x) for x in items]).to(dtype)
 
 
 def collate(frames: Sequence[RawFrame]) -> FrameBatch:
