@@ -92,7 +92,7 @@ def curvature_image(curvature: torch.Tensor, clip: float) -> torch.Tensor:
     """
     if not clip > 0:
         raise FeatureError(f"curvature clip must be > 0, got {clip}")
-    scaled = ((curvature.float().clamp(-clip, clip) + clip) / (2.0 * clip) * 255.0).clamp(0.0, 255.0)
+    scaled = ((curvature.double().clamp(-clip, clip) + clip) / (2.0 * clip) * 255.0).clamp(0.0, 255.0)
     return scaled.to(torch.uint8)  # truncation toward zero, as the reference
 
 

@@ -1,0 +1,363 @@
+"""Loop detection: candidates, SIFT + 2-D RANSAC, batched NormalFlow verification
+(method.md sections 6.2-6.4, ablations 9.5).
+
+For a query keyframe ``t`` the detector
+
+1. takes the eligible keyframes (the active coverage keyframes, given by the caller)
+   minus ``t`` itself and ``t - 1`` of the same session (already an odometry edge);
+2. drops same-group keyframes whose contact footprint cannot overlap the query's under
+   the current pose estimates (:func:`tactile_slam.loop.retrieval.pose_gate`);
+3. when more than ``max_candidates`` remain, keeps the ones with the most descriptor
+   votes in the :class:`~tactile_slam.loop.retrieval.DescriptorIndex`;
+4. matches each against the query and fits the 2-D similarity by RANSAC; pairs with at
+   least ``min_sift_inliers`` inliers are the loop candidates, each with an SE(3)
+   initial guess about the image centre;
+5. verifies all candidates as one NormalFlow batch (candidate = reference, query =
+   target) with the loop CCS/SCR thresholds, optionally also requiring the refined
+   pose to stay near the 2-D guess; each accepted pair is a :class:`Loop`.
+
+Modes (``LoopConfig.mode``): ``full``; ``only_sift`` (the lifted 2-D estimate is the
+measurement, no NormalFlow, no CCS/SCR); ``only_nf`` (no SIFT: NormalFlow from identity
+on every candidate, CCS/SCR decide); ``image_sift`` (SIFT on the keyframes' raw grey
+images instead of curvature; keyframes must carry ``image``).
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Collection, Mapping, Sequence
+from dataclasses import dataclass, fields, replace
+
+import torch
+
+from tactile_slam.config import Config
+from tactile_slam.geometry.frame import Frame
+from tactile_slam.loop.features import Features, SiftSettings, curvature_features, image_features
+from tactile_slam.loop.matching import RansacSettings, match, similarity_to_se3
+from tactile_slam.loop.retrieval import DescriptorIndex, Footprint, IndexSettings, footprints, pose_gate
+from tactile_slam.registration.normalflow import prepare_reference, register_prepared
+from tactile_slam.registration.result import RegistrationResult
+from tactile_slam.tracking.keyframe import Keyframe
+
+MODES = ("full", "only_sift", "only_nf", "image_sift")
+
+
+class LoopError(ValueError):
+    """Invalid input to loop detection (bad mode, unknown or duplicate keyframe, bad frame)."""
+
+
+@dataclass
+class Loop:
+    """An accepted loop: a between factor from keyframe ``ref_id`` to ``tar_id``.
+
+    Attributes:
+        ref_id: the earlier (candidate) keyframe.
+        tar_id: the query keyframe.
+        ref_T_tar: ``(4, 4)`` float64 metres, pose of the query keyframe in the candidate
+            keyframe (maps query-sensor coordinates into candidate-sensor coordinates):
+            the measurement of the between factor.
+        ccs: curvature cosine similarity of the verification (NaN in ``only_sift``).
+        scr: shared curvature ratio of the verification (NaN in ``only_sift``).
+        inliers: 2-D RANSAC inliers (0 in ``only_nf``).
+        init_tar_T_ref: ``(4, 4)`` float64 initial guess NormalFlow started from
+            (the lifted 2-D similarity; identity in ``only_nf``).
+    """
+
+    ref_id: int
+    tar_id: int
+    ref_T_tar: torch.Tensor
+    ccs: float
+    scr: float
+    inliers: int
+    init_tar_T_ref: torch.Tensor
+
+    def to_dict(self) -> dict:
+        """JSON-ready: poses as nested lists (metres)."""
+        return {"ref_id": self.ref_id, "tar_id": self.tar_id, "ref_T_tar": self.ref_T_tar.tolist(),
+                "ccs": self.ccs, "scr": self.scr, "inliers": self.inliers,
+                "init_tar_T_ref": self.init_tar_T_ref.tolist()}
+
+
+@dataclass
+class DetectionStats:
+    """Counters and cumulative times (seconds) over all :meth:`LoopDetector.detect` calls.
+
+    ``candidates`` are the pairs that passed RANSAC (the paper's "loop candidates"; in
+    ``only_nf`` every verified pair); ``pairs`` the pairs left after the exclusions,
+    ``gated`` those the pose gate removed, ``matched`` those matched and RANSAC-fitted.
+    """
+
+    queries: int = 0
+    pairs: int = 0
+    gated: int = 0
+    matched: int = 0
+    candidates: int = 0
+    verified: int = 0
+    rejected_deviation: int = 0
+    loops: int = 0
+    time_features: float = 0.0
+    time_retrieval: float = 0.0
+    time_matching: float = 0.0
+    time_verification: float = 0.0
+
+    def to_dict(self) -> dict:
+        return {f.name: getattr(self, f.name) for f in fields(self)}
+
+
+def rigid_inverse(T: torch.Tensor) -> torch.Tensor:
+    """Inverse of ``(..., 4, 4)`` rigid transforms."""
+    out = torch.zeros_like(T)
+    rt = T[..., :3, :3].transpose(-1, -2)
+    out[..., :3, :3] = rt
+    out[..., :3, 3] = -(rt @ T[..., :3, 3:]).squeeze(-1)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def repeat_frame(frame: Frame, b: int) -> Frame:
+    """A ``B = 1`` frame broadcast to ``b`` elements without copying (expanded views)."""
+    kw = {f.name: getattr(frame, f.name).expand(b, *getattr(frame, f.name).shape[1:])
+          for f in fields(frame) if f.name != "mm_per_px"}
+    return Frame(mm_per_px=frame.mm_per_px, **kw)
+
+
+def pose_deviation(a_T: torch.Tensor, b_T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotation angle (degrees) and in-plane translation distance (mm) between
+    ``(B, 4, 4)`` transforms ``a_T`` and ``b_T`` (z translation ignored: the 2-D guess has
+    none). Returns two ``(B,)`` float64 tensors."""
+    r = a_T[:, :3, :3].transpose(1, 2) @ b_T[:, :3, :3]
+    cos = ((r.diagonal(dim1=1, dim2=2).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.arccos(cos)), torch.linalg.vector_norm(a_T[:, :2, 3] - b_T[:, :2, 3], dim=1) * 1e3
+
+
+class LoopDetector:
+    """Finds loops between a query keyframe and earlier keyframes.
+
+    Args:
+        config: settings; ``config.loop`` for detection, ``config.normalflow`` for the
+            verification (with the loop CCS/SCR thresholds substituted).
+        mode: overrides ``config.loop.mode`` (one of :data:`MODES`).
+    """
+
+    def __init__(self, config: Config, mode: str | None = None):
+        lc = config.loop
+        self.config = config
+        self.mode = mode or lc.mode
+        if self.mode not in MODES:
+            raise LoopError(f"loop mode must be one of {MODES}, got {self.mode!r}")
+        if lc.min_sift_inliers < 3 or lc.max_candidates < 1 or lc.verify_batch < 1:
+            raise LoopError("loop.min_sift_inliers must be >= 3, max_candidates and verify_batch >= 1")
+        self.sift = SiftSettings(lc.sift_backend, lc.sift_contrast_threshold, lc.sift_octave_layers,
+                                 lc.sift_max_features, config.final_erode_px)
+        self.ransac = RansacSettings(lc.min_sift_inliers, lc.ransac_iterations, lc.ransac_threshold_px,
+                                     lc.ransac_confidence, lc.ransac_refine_iters)
+        self.nf_config = replace(config.normalflow, ccs_threshold=lc.ccs_threshold, scr_threshold=lc.scr_threshold)
+        self.index = DescriptorIndex(IndexSettings(lc.retrieval_neighbours, lc.retrieval_min_votes,
+                                                   lc.retrieval_exact_max))
+        self._features: dict[int, Features] = {}
+        self._footprints: dict[int, Footprint | None] = {}
+        self._removed: set[int] = set()
+        self.stats = DetectionStats()
+
+    # ------------------------------------------------------------------ map
+    def __len__(self) -> int:
+        return len(self._features)
+
+    def __contains__(self, kf_id: int) -> bool:
+        return kf_id in self._features
+
+    def features(self, kf_id: int) -> Features:
+        """The features of an added, not removed keyframe."""
+        if kf_id not in self._features:
+            raise LoopError(f"keyframe {kf_id} is not in the loop detector")
+        return self._features[kf_id]
+
+    def extract(self, keyframe: Keyframe) -> Features:
+        """Features of a keyframe for this mode (curvature SIFT, or image SIFT)."""
+        frame = _check_keyframe(keyframe)
+        t0 = time.perf_counter()
+        if self.mode == "image_sift":
+            if keyframe.image is None:
+                raise LoopError(f"mode 'image_sift' needs keyframe images; keyframe {keyframe.id} has none")
+            feats = image_features(keyframe.image, frame.contact[0].cpu(), self.sift)
+        else:
+            feats = curvature_features(frame.curvature[0].cpu(), frame.contact[0].cpu(),
+                                       self.config.curvature.clip, self.sift)
+        self.stats.time_features += time.perf_counter() - t0
+        return feats
+
+    def add(self, keyframe: Keyframe) -> Features:
+        """Extract and index a keyframe's features (call once per keyframe).
+
+        Returns:
+            its :class:`Features` (empty when the keyframe has no keypoints).
+        """
+        if keyframe.id in self._features or keyframe.id in self._removed:
+            raise LoopError(f"keyframe {keyframe.id} was already added")
+        feats = self.extract(keyframe)
+        self._features[keyframe.id] = feats
+        self.index.add(keyframe.id, feats.descriptors)
+        self._footprints[keyframe.id] = footprints(keyframe.frame.height, keyframe.frame.contact,
+                                                   keyframe.frame.mm_per_px / 1000.0)[0]
+        return feats
+
+    def remove(self, kf_id: int) -> None:
+        """Forget a keyframe (deactivated by the coverage set): it is never a candidate again."""
+        if kf_id not in self._features:
+            raise LoopError(f"keyframe {kf_id} is not in the loop detector")
+        del self._features[kf_id]
+        del self._footprints[kf_id]
+        self.index.remove(kf_id)
+        self._removed.add(kf_id)
+
+    # ------------------------------------------------------------------ detection
+    def detect(self, query: Keyframe, eligible: Collection[int], group_of: Mapping[int, int],
+               start_T_kf: Mapping[int, torch.Tensor], keyframes: Mapping[int, Keyframe]) -> list[Loop]:
+        """Loops between ``query`` and earlier keyframes.
+
+        Args:
+            query: the new keyframe (added or not; its features are reused if added).
+            eligible: ids that may be candidates (the active coverage keyframes); ids
+                removed from the detector are skipped.
+            group_of: keyframe id -> connected-group id (the pose gate applies within
+                the query's group; keyframes missing here are not gated).
+            start_T_kf: keyframe id -> ``(4, 4)`` float64 pose in its group's start
+                frame (metres); used only by the pose gate.
+            keyframes: keyframe id -> :class:`Keyframe` (frames of the candidates).
+
+        Returns:
+            accepted :class:`Loop` s, by candidate id; empty when there is nothing to match.
+        """
+        _check_keyframe(query)
+        self.stats.queries += 1
+        cands = self._exclusions(query, eligible, keyframes)
+        cands = self._gate(query, cands, group_of, start_T_kf)
+        if not cands:
+            return []
+        if self.mode == "only_nf":
+            self.stats.candidates += len(cands)
+            init = torch.eye(4, dtype=torch.float64).expand(len(cands), 4, 4)
+            return self._verify_and_accept(query, cands, init, [0] * len(cands), keyframes)
+        q_feats = self._features.get(query.id)
+        if q_feats is None:
+            q_feats = self.extract(query)
+        if len(q_feats) < self.ransac.min_inliers:
+            return []
+        t0 = time.perf_counter()
+        cands = [r for r in cands if len(self._features[r]) >= self.ransac.min_inliers]
+        if len(cands) > self.config.loop.max_candidates:
+            cands = sorted(self.index.query(q_feats.descriptors, cands, self.config.loop.max_candidates))
+        t1 = time.perf_counter()
+        self.stats.time_retrieval += t1 - t0
+        found, inits, inliers = [], [], []
+        shape, s = query.frame.shape, query.frame.mm_per_px / 1000.0
+        for r in cands:
+            sim = match(self._features[r], q_feats, self.ransac)
+            if sim is not None:
+                found.append(r)
+                inits.append(similarity_to_se3(sim.M, shape, s))
+                inliers.append(sim.inliers)
+        self.stats.matched += len(cands)
+        self.stats.candidates += len(found)
+        self.stats.time_matching += time.perf_counter() - t1
+        if not found:
+            return []
+        init = torch.stack(inits)
+        if self.mode == "only_sift":
+            ref_T_tar = rigid_inverse(init)
+            loops = [Loop(r, query.id, ref_T_tar[i], math.nan, math.nan, inliers[i], init[i])
+                     for i, r in enumerate(found)]
+            self.stats.loops += len(loops)
+            return loops
+        return self._verify_and_accept(query, found, init, inliers, keyframes)
+
+    def _exclusions(self, query: Keyframe, eligible: Collection[int], keyframes: Mapping[int, Keyframe]) -> list[int]:
+        out = []
+        for r in sorted(set(eligible)):
+            if r == query.id or r in self._removed:
+                continue
+            if r not in self._features:
+                raise LoopError(f"eligible keyframe {r} was never added to the loop detector")
+            if r not in keyframes:
+                raise LoopError(f"eligible keyframe {r} is missing from the keyframe map")
+            if r == query.id - 1 and keyframes[r].session == query.session:
+                continue  # odometry edge
+            out.append(r)
+        self.stats.pairs += len(out)
+        return out
+
+    def _gate(self, query: Keyframe, cands: list[int], group_of: Mapping[int, int],
+              start_T_kf: Mapping[int, torch.Tensor]) -> list[int]:
+        margin = self.config.loop.gate_margin_mm
+        if margin is None or query.id not in group_of or query.id not in start_T_kf:
+            return cands
+        q_fp = self._footprints.get(query.id)
+        if q_fp is None:
+            q_fp = footprints(query.frame.height, query.frame.contact, query.frame.mm_per_px / 1000.0)[0]
+        if q_fp is None:
+            return cands
+        g = group_of[query.id]
+        same = [r for r in cands if group_of.get(r) == g and r in start_T_kf and self._footprints[r] is not None]
+        if not same:
+            return cands
+        poses = torch.stack([torch.as_tensor(start_T_kf[r], dtype=torch.float64).cpu() for r in same])
+        keep = pose_gate(q_fp, start_T_kf[query.id], [self._footprints[r] for r in same], poses, margin * 1e-3)
+        dropped = {r for r, k in zip(same, keep.tolist()) if not k}
+        self.stats.gated += len(dropped)
+        return [r for r in cands if r not in dropped]
+
+    def verify(self, query: Keyframe, refs: Sequence[Keyframe], init_tar_T_ref: torch.Tensor) -> RegistrationResult:
+        """NormalFlow from each reference keyframe to the query, in batches of
+        ``loop.verify_batch`` pairs, with the loop CCS/SCR thresholds.
+
+        Args:
+            query: the target keyframe.
+            refs: ``B`` reference keyframes.
+            init_tar_T_ref: ``(B, 4, 4)`` float64 initial tar_T_ref (metres).
+
+        Returns:
+            a :class:`RegistrationResult` of ``B`` pairs (``ok`` = passed every check).
+        """
+        if len(refs) == 0 or init_tar_T_ref.shape != (len(refs), 4, 4):
+            raise LoopError(f"need B >= 1 references and (B, 4, 4) initial poses, got {len(refs)} and "
+                            f"{tuple(init_tar_T_ref.shape)}")
+        t0 = time.perf_counter()
+        step = self.config.loop.verify_batch
+        out = []
+        for a in range(0, len(refs), step):
+            chunk = refs[a:a + step]
+            prep = prepare_reference(Frame.cat([_check_keyframe(kf) for kf in chunk]), self.nf_config)
+            tar = repeat_frame(query.frame.to(prep.device), len(chunk))
+            out.append(register_prepared(prep, tar, init_tar_T_ref[a:a + step].to(prep.device), self.nf_config))
+        self.stats.verified += len(refs)
+        self.stats.time_verification += time.perf_counter() - t0
+        return RegistrationResult.cat(out)
+
+    def _verify_and_accept(self, query: Keyframe, cands: list[int], init: torch.Tensor, inliers: list[int],
+                           keyframes: Mapping[int, Keyframe]) -> list[Loop]:
+        res = self.verify(query, [keyframes[r] for r in cands], init)
+        T = res.tar_T_ref.cpu()
+        ok = res.ok.cpu().clone()
+        lc = self.config.loop
+        if self.mode != "only_nf" and (lc.max_init_rot_deg is not None or lc.max_init_trans_mm is not None):
+            rot, trans = pose_deviation(T, init)
+            far = torch.zeros_like(ok)
+            if lc.max_init_rot_deg is not None:
+                far |= rot > lc.max_init_rot_deg
+            if lc.max_init_trans_mm is not None:
+                far |= trans > lc.max_init_trans_mm
+            self.stats.rejected_deviation += int((ok & far).sum())
+            ok &= ~far
+        ref_T_tar = rigid_inverse(T)
+        loops = [Loop(r, query.id, ref_T_tar[i], float(res.ccs[i]), float(res.scr[i]), inliers[i], init[i].clone())
+                 for i, r in enumerate(cands) if bool(ok[i])]
+        self.stats.loops += len(loops)
+        return loops
+
+
+def _check_keyframe(keyframe: Keyframe) -> Frame:
+    frame = keyframe.frame
+    if len(frame) != 1:
+        raise LoopError(f"keyframe {keyframe.id} must hold a single frame (B = 1), got B = {len(frame)}")
+    return frame

@@ -1,0 +1,116 @@
+"""Curvature SIFT features: keypoints inside the eroded contact, none on flat contact,
+exact shift equivariance of the crop logic, the 8-bit mapping, bad input."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from tactile_slam.geometry.morphology import erode
+from tactile_slam.loop.features import (
+    FeatureError, Features, SiftSettings, contact_bbox, curvature_features, curvature_image, image_features,
+)
+from tests.registration.surfaces import Surface, frames, textured
+
+CLIP = 0.7
+
+
+@pytest.fixture(scope="module")
+def textured_frame():
+    return frames(textured(3), [torch.eye(4, dtype=torch.float64)])
+
+
+def test_smoke_types_and_shapes(textured_frame):
+    f = curvature_features(textured_frame.curvature[0], textured_frame.contact[0], CLIP)
+    assert isinstance(f, Features)
+    assert len(f) >= 8
+    assert f.keypoints.shape == (len(f), 2) and f.keypoints.dtype == torch.float32
+    assert f.descriptors.shape == (len(f), 128) and f.descriptors.dtype == torch.float32
+
+
+def test_keypoints_inside_eroded_contact(textured_frame):
+    contact = textured_frame.contact[0]
+    f = curvature_features(textured_frame.curvature[0], contact, CLIP)
+    inner = erode(contact[None], 5, border_is_contact=False)[0]
+    rows, cols = f.keypoints[:, 1].round().long(), f.keypoints[:, 0].round().long()
+    assert bool(inner[rows, cols].all())
+    # and they are spread over the contact, not only at one spot
+    assert float(f.keypoints[:, 0].std()) > 10.0 and float(f.keypoints[:, 1].std()) > 10.0
+
+
+def test_flat_contact_has_no_keypoints():
+    fr = frames(Surface(flat=True, depth=0.5e-3), [torch.eye(4, dtype=torch.float64)])
+    assert int(fr.contact.sum()) > 10000  # a large contact, but featureless inside
+    f = curvature_features(fr.curvature[0], fr.contact[0], CLIP)
+    assert len(f) == 0
+
+
+def test_no_contact_is_empty(textured_frame):
+    none = torch.zeros_like(textured_frame.contact[0])
+    f = curvature_features(textured_frame.curvature[0], none, CLIP)
+    assert len(f) == 0 and f.descriptors.shape == (0, 128)
+
+
+def test_integer_shift_equivariance(textured_frame):
+    """Shifting the map and the contact by whole pixels shifts every keypoint by the
+    same amount and leaves its descriptor unchanged (crop and shift-back are exact)."""
+    curv, contact = textured_frame.curvature[0], textured_frame.contact[0]
+    dy, dx = 7, -11
+    f0 = curvature_features(curv, contact, CLIP)
+    f1 = curvature_features(torch.roll(curv, (dy, dx), (0, 1)), torch.roll(contact, (dy, dx), (0, 1)), CLIP)
+    assert len(f0) == len(f1)
+    o0 = torch.argsort(f0.keypoints[:, 0] * 1000 + f0.keypoints[:, 1])
+    o1 = torch.argsort(f1.keypoints[:, 0] * 1000 + f1.keypoints[:, 1])
+    torch.testing.assert_close(f1.keypoints[o1], f0.keypoints[o0] + torch.tensor([dx, dy], dtype=torch.float32))
+    torch.testing.assert_close(f1.descriptors[o1], f0.descriptors[o0])
+
+
+def test_curvature_image_mapping():
+    L = torch.tensor([[-0.7, -0.35, 0.0], [0.2, 0.7, 0.69999], [-0.9, 0.9, 0.011]])
+    expected = np.trunc((np.clip(L.numpy().astype(np.float64), -0.7, 0.7) + 0.7) / 1.4 * 255).astype(np.uint8)
+    out = curvature_image(L, CLIP)
+    assert out.dtype == torch.uint8
+    np.testing.assert_array_equal(out.numpy(), expected)
+    assert int(curvature_image(torch.zeros(2, 3, 3), CLIP)[0, 0, 0]) == 127
+
+
+def test_contact_bbox():
+    m = torch.zeros(10, 12, dtype=torch.bool)
+    assert contact_bbox(m) is None
+    m[2:5, 3:9] = True
+    assert contact_bbox(m) == (2, 5, 3, 9)
+
+
+def test_image_features_within_contact(textured_frame):
+    contact = textured_frame.contact[0]
+    grey = curvature_image(textured_frame.curvature[0], CLIP)
+    bgr = grey[..., None].expand(-1, -1, 3).contiguous()
+    f = image_features(bgr, contact)
+    assert len(f) > 0
+    inner = erode(contact[None], 5, border_is_contact=False)[0]
+    assert bool(inner[f.keypoints[:, 1].round().long(), f.keypoints[:, 0].round().long()].all())
+
+
+def test_kornia_backend_inside_contact(textured_frame):
+    contact = textured_frame.contact[0]
+    f = curvature_features(textured_frame.curvature[0], contact, CLIP, SiftSettings(backend="kornia", max_features=128))
+    assert len(f) > 0 and f.descriptors.shape == (len(f), 128)
+    inner = erode(contact[None], 5, border_is_contact=False)[0]
+    assert bool(inner[f.keypoints[:, 1].round().long(), f.keypoints[:, 0].round().long()].all())
+
+
+def test_exceptions(textured_frame):
+    curv, contact = textured_frame.curvature[0], textured_frame.contact[0]
+    with pytest.raises(FeatureError, match="NaN"):
+        curvature_features(torch.full_like(curv, float("nan")), contact, CLIP)
+    with pytest.raises(FeatureError, match="single"):
+        curvature_features(curv[None], contact, CLIP)
+    with pytest.raises(FeatureError, match="contact"):
+        curvature_features(curv, contact[:10], CLIP)
+    with pytest.raises(FeatureError, match="backend"):
+        curvature_features(curv, contact, CLIP, SiftSettings(backend="surf"))
+    with pytest.raises(FeatureError, match="clip"):
+        curvature_image(curv, 0.0)
+    with pytest.raises(FeatureError, match="uint8"):
+        image_features(torch.zeros(240, 320, 3), contact)
