@@ -32,27 +32,41 @@ JACOBIANS = {"analytic": jacobian_analytic, "autograd": jacobian_autograd}
 
 
 @dataclass
+class Level:
+    """One Gauss-Newton level of a prepared reference.
+
+    Attributes:
+        normals_t: ``(B, 3, K)`` reference normals n_k at this level, channels first.
+        jacobian: ``(B, 3K, 5)`` float64 rows of J_k, channel-major (all x rows, then
+            all y rows, then all z rows), matching ``(B, 3, K)`` residuals.
+        jtj: ``(B, K, 25)`` float64 per-sample ``J_k^T J_k``.
+        factor: 1 for full resolution; ``f > 1`` for maps averaged over ``f x f``
+            blocks (a coarse level: wider basin, used to initialise the next level).
+    """
+
+    normals_t: torch.Tensor
+    jacobian: torch.Tensor
+    jtj: torch.Tensor
+    factor: int
+
+
+@dataclass
 class PreparedReference:
     """Per-reference quantities, computed once and reused for every target.
 
     Attributes:
         points: ``(B, K, 3)`` sample points P_k, metres, reference sensor frame.
-        normals: ``(B, K, 3)`` reference normals n_k.
         curvature: ``(B, K)`` reference curvature L_ref,k (1/px).
         valid: ``(B, K)`` bool, False for padding.
-        jacobian: ``(B, 3K, 5)`` float64 rows of J_k, channel-major (all x rows, then
-            all y rows, then all z rows).
-        jtj: ``(B, K, 25)`` float64 per-sample ``J_k^T J_k``.
+        levels: coarse to fine; the last is full resolution.
         shape: ``(H, W)`` of the image.
         m_per_px: metres per pixel.
     """
 
     points: torch.Tensor
-    normals: torch.Tensor
     curvature: torch.Tensor
     valid: torch.Tensor
-    jacobian: torch.Tensor
-    jtj: torch.Tensor
+    levels: list[Level]
     shape: tuple[int, int]
     m_per_px: float
 
@@ -74,13 +88,16 @@ def _check_finite(frame: Frame, what: str) -> None:
         raise RegistrationError(f"{what} frame contains NaN or Inf in its normals, height or curvature")
 
 
-def _check_config(config: NormalFlowConfig) -> None:
+def _check_config(config: NormalFlowConfig, shape: tuple[int, int] | None = None) -> None:
     if config.jacobian not in JACOBIANS:
         raise RegistrationError(f"normalflow.jacobian must be one of {tuple(JACOBIANS)}, got {config.jacobian!r}")
-    if config.max_iters < 1 or config.min_iters < 1:
-        raise RegistrationError("normalflow.max_iters and min_iters must be >= 1")
+    if config.max_iters < 1 or config.min_iters < 1 or config.coarse_max_iters < 1:
+        raise RegistrationError("normalflow.max_iters, min_iters and coarse_max_iters must be >= 1")
     if config.lm_damping < 0:
         raise RegistrationError(f"normalflow.lm_damping must be >= 0, got {config.lm_damping}")
+    for f in config.coarse_factors:
+        if f < 2 or (shape is not None and (shape[0] % f or shape[1] % f)):
+            raise RegistrationError(f"normalflow.coarse_factors must be >= 2 and divide the image size, got {f}")
 
 
 def metric_points(height: torch.Tensor, idx: torch.Tensor, m_per_px: float) -> torch.Tensor:
@@ -100,6 +117,34 @@ def metric_points(height: torch.Tensor, idx: torch.Tensor, m_per_px: float) -> t
     return torch.stack([c - (w - 1) / 2.0, r - (h - 1) / 2.0, z], dim=-1) * m_per_px
 
 
+def _level(points, normals, dn, valid, factor, jacobian) -> Level:
+    """Jacobian rows and per-sample ``J^T J`` for normals ``(B, K, 3)`` and their
+    derivatives per metre ``(B, K, 3, 2)``."""
+    b = points.shape[0]
+    jac = JACOBIANS[jacobian](points.double(), normals.double(), dn.double())
+    jac = jac * valid[..., None, None]  # (B, K, 3, 5)
+    jtj = (jac.unsqueeze(-1) * jac.unsqueeze(-2)).sum(2).reshape(b, -1, 25)
+    rows = jac.transpose(1, 2).reshape(b, -1, 5)
+    return Level(normals.transpose(1, 2).contiguous(), rows, jtj, factor)
+
+
+def _coarse_level(normals_map, points, valid, s, factor, jacobian) -> Level:
+    """A level on ``factor x factor`` block averages of the normal map. Values and
+    5x5 Sobel derivatives of the averaged map are sampled bilinearly at the samples."""
+    b, h, w, _ = normals_map.shape
+    pooled = F.avg_pool2d(normals_map.permute(0, 3, 1, 2), factor)  # (B, 3, h/f, w/f)
+    smooth = torch.tensor([1.0, 4.0, 6.0, 4.0, 1.0], dtype=pooled.dtype, device=pooled.device)
+    deriv = torch.tensor([-1.0, -2.0, 0.0, 2.0, 1.0], dtype=pooled.dtype, device=pooled.device)
+    kernels = torch.stack([torch.outer(smooth, deriv), torch.outer(deriv, smooth)])[:, None] / 128.0
+    padded = F.pad(pooled.reshape(b * 3, 1, *pooled.shape[2:]), (2, 2, 2, 2), mode="reflect")
+    sob = F.conv2d(padded, kernels).reshape(b, 6, *pooled.shape[2:])  # (x-deriv, y-deriv) per channel
+    grid = points[..., :2] * _grid_scale((h, w), s, points, align_corners=False)
+    normals = _sample(pooled, grid, "bilinear", False).transpose(1, 2)
+    dn = _sample(sob, grid, "bilinear", False).transpose(1, 2).reshape(b, -1, 3, 2) / (factor * s)
+    vf = valid.to(normals.dtype)[..., None]
+    return _level(points, normals * vf, dn * vf[..., None], valid, factor, jacobian)
+
+
 def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype: torch.dtype | None = None
                       ) -> PreparedReference:
     """Select samples and precompute P_k, n_k, L_k and J_k for ``B`` references.
@@ -113,7 +158,7 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
         a :class:`PreparedReference` on the frame's device.
     """
     config = config or NormalFlowConfig()
-    _check_config(config)
+    _check_config(config, ref.shape)
     if len(ref) == 0:
         raise RegistrationError("empty reference batch")
     _check_finite(ref, "reference")
@@ -123,33 +168,32 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     gen = torch.Generator().manual_seed(config.seed) if config.selection == "random" else None
     idx, valid = select_samples(ref.curvature, ref.contact, config.n_samples, config.selection, gen)
     normals_map = ref.normals.to(dtype)
-    points = metric_points(ref.height.to(dtype), idx, s)
-    normals = normals_map.reshape(b, -1, 3).gather(1, idx[..., None].expand(-1, -1, 3))
-    curv = ref.curvature.to(dtype).reshape(b, -1).gather(1, idx)
     vf = valid.to(dtype)
-    points, normals, curv = points * vf[..., None], normals * vf[..., None], curv * vf
-    dn = sobel_at(normals_map, idx) / s  # per metre
-    jac = JACOBIANS[config.jacobian](points.double(), normals.double(), dn.double())
-    jac = jac * valid[..., None, None]  # (B, K, 3, 5)
-    jtj = (jac.unsqueeze(-1) * jac.unsqueeze(-2)).sum(2).reshape(b, -1, 25)
-    rows = jac.transpose(1, 2).reshape(b, -1, 5)  # channel-major rows, matching (B, 3, K) residuals
-    return PreparedReference(points, normals, curv, valid, rows, jtj, (h, w), s)
+    points = metric_points(ref.height.to(dtype), idx, s) * vf[..., None]
+    normals = normals_map.reshape(b, -1, 3).gather(1, idx[..., None].expand(-1, -1, 3)) * vf[..., None]
+    curv = ref.curvature.to(dtype).reshape(b, -1).gather(1, idx) * vf
+    levels = [_coarse_level(normals_map, points, valid, s, f, config.jacobian)
+              for f in sorted(config.coarse_factors, reverse=True)]
+    levels.append(_level(points, normals, sobel_at(normals_map, idx) / s, valid, 1, config.jacobian))
+    return PreparedReference(points, curv, valid, levels, (h, w), s)
 
 
 def _as_batch(x: torch.Tensor, b: int) -> torch.Tensor:
     return x.expand(b, *x.shape[1:]) if x.shape[0] == 1 and b > 1 else x
 
 
-def _grid_scale(shape: tuple[int, int], s: float, like: torch.Tensor) -> torch.Tensor:
-    """Factor taking metric ``(x, y)`` to grid_sample coordinates (align_corners=True,
-    pixel centres at the image's (W-1)/2, (H-1)/2 origin). ``(2,)``."""
+def _grid_scale(shape: tuple[int, int], s: float, like: torch.Tensor, align_corners: bool = True) -> torch.Tensor:
+    """Factor taking metric ``(x, y)`` (origin at the image centre) to grid_sample
+    coordinates. ``(2,)``."""
     h, w = shape
-    return torch.tensor([2.0 / (s * (w - 1)), 2.0 / (s * (h - 1))], dtype=like.dtype, device=like.device)
+    if align_corners:  # pixel centres 0 and W-1 at -1 and 1
+        return torch.tensor([2.0 / (s * (w - 1)), 2.0 / (s * (h - 1))], dtype=like.dtype, device=like.device)
+    return torch.tensor([2.0 / (s * w), 2.0 / (s * h)], dtype=like.dtype, device=like.device)  # image edges
 
 
-def _sample(maps: torch.Tensor, grid: torch.Tensor, mode: str) -> torch.Tensor:
+def _sample(maps: torch.Tensor, grid: torch.Tensor, mode: str, align_corners: bool = True) -> torch.Tensor:
     """``(B, C, H, W)`` maps at ``(B, K, 2)`` grid points, zero outside -> ``(B, C, K)``."""
-    out = F.grid_sample(maps, grid.unsqueeze(1), mode=mode, padding_mode="zeros", align_corners=True)
+    out = F.grid_sample(maps, grid.unsqueeze(1), mode=mode, padding_mode="zeros", align_corners=align_corners)
     return out.view(maps.shape[0], maps.shape[1], grid.shape[1])
 
 
@@ -171,6 +215,59 @@ def _solve(ata: torch.Tensor, atb: torch.Tensor, damping: float) -> tuple[torch.
     return torch.cholesky_solve(atb.unsqueeze(-1), chol).squeeze(-1), info == 0
 
 
+@dataclass
+class _State:
+    """Gauss-Newton state of ``B`` pairs: ``tar_T_ref = [rot | (txy, 0)]`` (float64)."""
+
+    rot: torch.Tensor  # (B, 3, 3)
+    txy: torch.Tensor  # (B, 2)
+    active: torch.Tensor  # (B,) still iterating
+    lost: torch.Tensor  # (B,) too few shared samples or an unsolvable step
+    converged: torch.Tensor  # (B,)
+    iterations: torch.Tensor  # (B,) int64
+    ata: torch.Tensor  # (B, 5, 5) last normal equations
+
+
+def _gauss_newton(st: _State, lvl: Level, points, valid, n_map, c_map, scale, align_corners, config,
+                  max_iters: int, min_iters: int, tol_scale: float) -> _State:
+    """Inverse-compositional Gauss-Newton iterations of one level (method.md 4.4)."""
+    b, k = valid.shape
+    dt = points.dtype
+    jtj, jac = _as_batch(lvl.jtj, b), _as_batch(lvl.jacobian, b)
+    normals_t = _as_batch(lvl.normals_t, b)
+    rot, txy, active, lost, converged = st.rot, st.txy, st.active.clone(), st.lost.clone(), st.converged.clone()
+    iterations, ata = st.iterations.clone(), st.ata
+    rot_tol, trans_tol = config.rot_tol * tol_scale, config.trans_tol_m * tol_scale
+    for i in range(max_iters):
+        r_dt = rot.to(dt)
+        grid = torch.baddbmm((txy.to(dt) * scale).unsqueeze(1), points, (r_dt[:, :2] * scale[:, None]).transpose(1, 2))
+        near = _sample(c_map, grid, "nearest", align_corners).view(b, k)
+        shared = (near > 0.5) & _inside(grid) & valid
+        lost |= active & (shared.sum(1) < config.min_shared)
+        active &= ~lost
+        # residual R^T N_tar(x') - n, (B, 3, K), and the normal equations in float64
+        res = torch.bmm(r_dt.transpose(1, 2), _sample(n_map, grid, "bilinear", align_corners)) - normals_t
+        w = shared.to(torch.float64)
+        ata = torch.bmm(w.unsqueeze(1), jtj).view(b, 5, 5)
+        atb = torch.bmm((res.to(torch.float64) * w.unsqueeze(1)).view(b, 1, 3 * k), jac).view(b, 5)
+        delta, solved = _solve(ata, atb, config.lm_damping)
+        solved &= torch.isfinite(delta).all(1)
+        lost |= active & ~solved
+        active &= solved
+        delta = torch.where(active[:, None], delta, torch.zeros_like(delta))
+        # T <- T dT^-1 with dT = [R(w) | (tx, ty, 0)]; tz stays 0 during the iterations
+        rot = rot @ euler_to_matrix(delta[:, :3]).transpose(1, 2)
+        txy = txy - (rot[:, :2, :2] @ delta[:, 3:, None]).squeeze(-1)
+        iterations += active
+        if i + 1 >= min_iters:
+            step = (delta[:, :3].norm(dim=1) < rot_tol) & (delta[:, 3:].norm(dim=1) < trans_tol)
+            converged |= active & step
+            active &= ~step
+            if not bool(active.any()):
+                break
+    return _State(rot, txy, active, lost, converged, iterations, ata)
+
+
 def register_prepared(
     prep: PreparedReference,
     tar: Frame,
@@ -190,7 +287,7 @@ def register_prepared(
         a :class:`RegistrationResult` of ``B`` pairs; failures are reported, not raised.
     """
     config = config or NormalFlowConfig()
-    _check_config(config)
+    _check_config(config, prep.shape)
     b = len(tar)
     if b == 0:
         raise RegistrationError("empty target batch")
@@ -212,54 +309,29 @@ def register_prepared(
     if not bool(torch.isfinite(init).all()):
         raise RegistrationError("init_tar_T_ref contains NaN or Inf")
 
-    points, normals_t = _as_batch(prep.points, b), _as_batch(prep.normals, b).transpose(1, 2)
-    valid, jac, jtj = _as_batch(prep.valid, b), _as_batch(prep.jacobian, b), _as_batch(prep.jtj, b)
-    k = points.shape[1]
+    points, valid = _as_batch(prep.points, b), _as_batch(prep.valid, b)
     n_map = tar.normals.to(device=dev, dtype=dt).permute(0, 3, 1, 2)  # a view: no copy
     c_map = tar.contact.to(device=dev, dtype=dt).unsqueeze(1)
+    flags = torch.zeros(b, dtype=torch.bool, device=dev)
+    st = _State(init[:, :3, :3].expand(b, 3, 3), init[:, :2, 3].expand(b, 2), ~flags, flags, flags,
+                torch.zeros(b, dtype=torch.int64, device=dev), torch.zeros((b, 5, 5), dtype=torch.float64, device=dev))
+    for lvl in prep.levels[:-1]:  # coarse levels: block-averaged target maps
+        f = lvl.factor
+        scale = _grid_scale(prep.shape, prep.m_per_px, points, align_corners=False)
+        st = _gauss_newton(st, lvl, points, valid, F.avg_pool2d(n_map, f), F.avg_pool2d(c_map, f), scale, False,
+                           config, config.coarse_max_iters, 1, float(f))
+        st.active, st.converged = ~st.lost, torch.zeros_like(st.lost)
     scale = _grid_scale(prep.shape, prep.m_per_px, points)
-
-    rot = init[:, :3, :3].expand(b, 3, 3)
-    txy = init[:, :2, 3].expand(b, 2)
-    active = torch.ones(b, dtype=torch.bool, device=dev)
-    lost = torch.zeros(b, dtype=torch.bool, device=dev)
-    converged = torch.zeros(b, dtype=torch.bool, device=dev)
-    iterations = torch.zeros(b, dtype=torch.int64, device=dev)
-    ata = torch.zeros((b, 5, 5), dtype=torch.float64, device=dev)
-    for i in range(config.max_iters):
-        r_dt = rot.to(dt)
-        grid = torch.baddbmm((txy.to(dt) * scale).unsqueeze(1), points, (r_dt[:, :2] * scale[:, None]).transpose(1, 2))
-        shared = (_sample(c_map, grid, "nearest").view(b, k) > 0.5) & _inside(grid) & valid
-        lost |= active & (shared.sum(1) < config.min_shared)
-        active &= ~lost
-        # residual R^T N_tar(x') - n, (B, 3, K), and the normal equations in float64
-        res = torch.bmm(r_dt.transpose(1, 2), _sample(n_map, grid, "bilinear")) - normals_t
-        w = shared.to(torch.float64)
-        ata = torch.bmm(w.unsqueeze(1), jtj).view(b, 5, 5)
-        atb = torch.bmm((res.to(torch.float64) * w.unsqueeze(1)).view(b, 1, 3 * k), jac).view(b, 5)
-        delta, solved = _solve(ata, atb, config.lm_damping)
-        solved &= torch.isfinite(delta).all(1)
-        lost |= active & ~solved
-        active &= solved
-        delta = torch.where(active[:, None], delta, torch.zeros_like(delta))
-        # T <- T dT^-1 with dT = [R(w) | (tx, ty, 0)]; tz stays 0 during the iterations
-        rot = rot @ euler_to_matrix(delta[:, :3]).transpose(1, 2)
-        txy = txy - (rot[:, :2, :2] @ delta[:, 3:, None]).squeeze(-1)
-        iterations += active
-        if i + 1 >= config.min_iters:
-            step = (delta[:, :3].norm(dim=1) < config.rot_tol) & (delta[:, 3:].norm(dim=1) < config.trans_tol_m)
-            converged |= active & step
-            active &= ~step
-            if not bool(active.any()):
-                break
+    st = _gauss_newton(st, prep.levels[-1], points, valid, n_map, c_map, scale, True, config,
+                       config.max_iters, config.min_iters, 1.0)
     T = torch.eye(4, dtype=torch.float64, device=dev).repeat(b, 1, 1)
-    T[:, :3, :3] = rot
-    T[:, :2, 3] = txy
+    T[:, :3, :3] = st.rot
+    T[:, :2, 3] = st.txy
     maps = (tar.height.to(device=dev, dtype=dt).unsqueeze(1), tar.curvature.to(device=dev, dtype=dt).unsqueeze(1), c_map)
-    return _finish(prep, points, valid, maps, T, ata, lost, converged, iterations, config, scale)
+    return _finish(prep, points, valid, maps, T, st, config, scale)
 
 
-def _finish(prep, points, valid, maps, T, ata, lost, converged, iterations, config, scale):
+def _finish(prep, points, valid, maps, T, st, config, scale):
     """tz from the height difference, CCS/SCR, degeneracy, and the ok flag."""
     b, k = valid.shape
     dt = points.dtype
@@ -289,14 +361,13 @@ def _finish(prep, points, valid, maps, T, ata, lost, converged, iterations, conf
     spread = ((xy - centre).square() * vf).sum((1, 2)) / vf.sum((1, 2)).clamp_min(1.0)
     ones = torch.ones((b, 3), dtype=torch.float64, device=T.device)
     sc = torch.cat([ones, spread.sqrt()[:, None].expand(b, 2)], dim=1)
-    eig = torch.linalg.eigvalsh(ata * sc[:, :, None] * sc[:, None, :])
+    eig = torch.linalg.eigvalsh(st.ata * sc[:, :, None] * sc[:, None, :])
     degenerate = ~(eig[:, 0] > config.degenerate_eig * eig[:, -1])
-    ok = ~lost & tz_ok & ~degenerate
+    ok = ~st.lost & tz_ok & ~degenerate
     if config.check_scores:
         ok &= (ccs >= config.ccs_threshold) & (scr >= config.scr_threshold)
-    return RegistrationResult(
-        tar_T_ref=T, ccs=ccs, scr=scr, n_shared=sh.sum(1), iterations=iterations, converged=converged, ok=ok
-    )
+    return RegistrationResult(tar_T_ref=T, ccs=ccs, scr=scr, n_shared=sh.sum(1), iterations=st.iterations,
+                              converged=st.converged, ok=ok)
 
 
 def register(

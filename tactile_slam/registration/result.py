@@ -80,7 +80,10 @@ def pose_error(est_T: torch.Tensor, true_T: torch.Tensor) -> tuple[torch.Tensor,
     est_T = est_T.double()
     true_T = true_T.double().to(est_T.device)
     r = est_T[:, :3, :3].transpose(1, 2) @ true_T[:, :3, :3]
-    cos = ((r.diagonal(dim1=1, dim2=2).sum(-1) - 1.0) / 2.0).clamp(-1.0, 1.0)
-    rot = torch.rad2deg(torch.arccos(cos))
+    # atan2(sin, cos) of the relative rotation: accurate near 0 and 180 deg
+    skew = r - r.transpose(1, 2)
+    sin = torch.stack([skew[:, 2, 1], skew[:, 0, 2], skew[:, 1, 0]], -1).norm(dim=-1) / 2.0
+    cos = (r.diagonal(dim1=1, dim2=2).sum(-1) - 1.0) / 2.0
+    rot = torch.rad2deg(torch.atan2(sin, cos))
     trans = torch.linalg.vector_norm(est_T[:, :3, 3] - true_T[:, :3, 3], dim=-1) * 1000.0
     return rot, trans

@@ -1,0 +1,103 @@
+import cv2
+import numpy as np
+import pytest
+import torch
+from scipy.spatial.transform import Rotation
+
+from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
+from tactile_slam.registration.normalflow import prepare_reference
+
+from .surfaces import as_dtype, bumpy, frames
+
+
+def test_euler_matches_scipy(dtype):
+    angles = torch.tensor([[0.3, -0.2, 1.1], [-2.0, 0.5, 0.01]], dtype=dtype)
+    expected = Rotation.from_euler("xyz", angles.double().numpy()).as_matrix()
+    tol = 1e-6 if dtype == torch.float32 else 1e-12
+    assert np.allclose(euler_to_matrix(angles).double().numpy(), expected, atol=tol)
+
+
+def test_euler_gradcheck():
+    angles = torch.tensor([[0.3, -0.2, 1.1]], dtype=torch.float64, requires_grad=True)
+    assert torch.autograd.gradcheck(euler_to_matrix, (angles,))
+
+
+def test_sobel_at_matches_opencv_including_borders(device, dtype):
+    g = torch.Generator().manual_seed(0)
+    maps = torch.rand((1, 12, 15, 3), generator=g, dtype=torch.float64)
+    idx = torch.tensor([[0, 1, 14, 16, 50, 95, 179]])  # corners, edges, interior
+    got = sobel_at(maps.to(device, dtype), idx.to(device)).cpu().double()
+    for ch in range(3):
+        img = maps[0, :, :, ch].numpy()
+        dx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=5, scale=2**-7).ravel()[idx[0].numpy()]
+        dy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=5, scale=2**-7).ravel()[idx[0].numpy()]
+        tol = 1e-5 if dtype == torch.float32 else 1e-12
+        assert np.allclose(got[0, :, ch, 0].numpy(), dx, atol=tol)
+        assert np.allclose(got[0, :, ch, 1].numpy(), dy, atol=tol)
+
+
+def _random_inputs(n=64, seed=0, device="cpu"):
+    g = torch.Generator().manual_seed(seed)
+    p = (torch.rand((2, n, 3), generator=g, dtype=torch.float64) - 0.5) * 1e-2
+    nrm = torch.nn.functional.normalize(torch.rand((2, n, 3), generator=g, dtype=torch.float64) + 0.5, dim=-1)
+    d = torch.randn((2, n, 3, 2), generator=g, dtype=torch.float64) * 300.0
+    return p.to(device), nrm.to(device), d.to(device)
+
+
+def test_autograd_equals_analytic(device):
+    p, n, d = _random_inputs(device=device)
+    ja = jacobian_analytic(p, n, d)
+    jg = jacobian_autograd(p, n, d)
+    assert ja.shape == jg.shape == (2, 64, 3, 5)
+    assert torch.allclose(ja, jg, atol=1e-10, rtol=1e-10)
+
+
+def test_analytic_gradcheck():
+    p, n, d = _random_inputs(n=4)
+    args = tuple(x.clone().requires_grad_(True) for x in (p, n, d))
+    assert torch.autograd.gradcheck(jacobian_analytic, args)
+
+
+def _true_normals(surf, x, y):
+    """Gel normals of the analytic surface at metric (x, y), by autograd on f."""
+    x = x.clone().requires_grad_(True)
+    y = y.clone().requires_grad_(True)
+    fx, fy = torch.autograd.grad(surf(x, y).sum(), (x, y))
+    return torch.nn.functional.normalize(torch.stack([-fx, -fy, torch.ones_like(fx)], -1), dim=-1)
+
+
+def test_jacobian_matches_finite_differences_of_the_true_residual():
+    """r(delta) = R^T N(proj(dT P)) - N(proj(P)) on the analytic surface, whose central
+    differences at delta = 0 are what the Sobel-based Jacobian approximates."""
+    surf = bumpy(2)
+    ref = as_dtype(frames(surf, [torch.eye(4, dtype=torch.float64)]), torch.float64)
+    prep = prepare_reference(ref, dtype=torch.float64)
+    keep = prep.valid[0] & (prep.points[0, :, 2] < -0.3e-3)  # away from the contact rim
+    P = prep.points[0][keep]
+    n0 = _true_normals(surf, P[:, 0], P[:, 1])
+    eps = (1e-4, 1e-4, 1e-4, 1e-6, 1e-6)
+    cols = []
+    for j, e in enumerate(eps):
+        r = []
+        for sgn in (1.0, -1.0):
+            d = torch.zeros(5, dtype=torch.float64)
+            d[j] = sgn * e
+            R = euler_to_matrix(d[None, :3])[0]
+            q = P @ R.T + torch.cat([d[3:], d[:1] * 0])
+            r.append(_true_normals(surf, q[:, 0], q[:, 1]) @ R - n0)
+        cols.append((r[0] - r[1]) / (2 * e))
+    fd = torch.stack(cols, dim=-1)  # (K, 3, 5)
+    J = prep.levels[-1].jacobian[0].view(3, -1, 5).transpose(0, 1)[keep]
+    err = (fd - J).norm(dim=(0, 1)) / fd.norm(dim=(0, 1))
+    assert (err < 0.1).all(), err
+
+
+@pytest.mark.parametrize("kind", ["analytic", "autograd"])
+def test_prepared_jacobian_kinds_agree(kind):
+    from tactile_slam.config import NormalFlowConfig
+
+    ref = frames(bumpy(0), [torch.eye(4, dtype=torch.float64)])
+    a = prepare_reference(ref, NormalFlowConfig(jacobian="analytic", n_samples=500))
+    b = prepare_reference(ref, NormalFlowConfig(jacobian=kind, n_samples=500))
+    assert torch.allclose(a.levels[-1].jacobian, b.levels[-1].jacobian, rtol=1e-9, atol=1e-9)
+    assert torch.allclose(a.levels[-1].jtj, b.levels[-1].jtj, rtol=1e-9, atol=1e-6)

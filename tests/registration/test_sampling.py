@@ -1,0 +1,94 @@
+import numpy as np
+import pytest
+import torch
+
+from tactile_slam.registration.sampling import mask_to_indices, select_samples, top_k_mask
+
+
+def _random_maps(b=2, h=30, w=40, seed=0, dtype=torch.float32):
+    g = torch.Generator().manual_seed(seed)
+    contact = torch.rand((b, h, w), generator=g) > 0.4
+    lap = (torch.randn((b, h, w), generator=g) * 0.2).clamp(-0.7, 0.7).to(dtype) * contact
+    return lap, contact
+
+
+class TestMaskToIndices:
+    def test_row_major_and_padding(self, device):
+        mask = torch.tensor([[0, 1, 0, 1, 1], [1, 0, 0, 0, 0]], dtype=torch.bool, device=device)
+        idx, valid = mask_to_indices(mask)
+        assert idx.tolist() == [[1, 3, 4], [0, 0, 0]]
+        assert valid.tolist() == [[True, True, True], [True, False, False]]
+
+    def test_truncates_to_k(self, device):
+        mask = torch.ones((1, 6), dtype=torch.bool, device=device)
+        idx, valid = mask_to_indices(mask, 4)
+        assert idx.tolist() == [[0, 1, 2, 3]] and bool(valid.all())
+
+    def test_empty_rows_give_one_invalid_column(self, device):
+        idx, valid = mask_to_indices(torch.zeros((3, 5), dtype=torch.bool, device=device))
+        assert idx.shape == (3, 1) and not bool(valid.any())
+
+
+class TestTopK:
+    def test_matches_stable_sort(self, device, dtype):
+        lap, contact = _random_maps(dtype=dtype)
+        # heavy ties: quantise, so that the tie rule decides
+        lap = (lap * 20).round() / 20
+        idx, valid = select_samples(lap.to(device), contact.to(device), 300, "topk")
+        for i in range(lap.shape[0]):
+            a = np.where(contact[i].numpy().ravel(), np.abs(lap[i].numpy().ravel()), -1.0)
+            order = np.argsort(-a, kind="stable")[:300]  # |L| descending, ties by index
+            expected = np.sort(order[a[order] >= 0])
+            assert idx[i][valid[i]].cpu().numpy().tolist() == expected.tolist()
+
+    def test_fewer_contact_pixels_than_k_takes_all(self, device):
+        lap, contact = _random_maps()
+        idx, valid = select_samples(lap.to(device), contact.to(device), 10**6, "topk")
+        assert valid.sum(1).tolist() == contact.reshape(2, -1).sum(1).tolist()
+
+    def test_all_at_clip_still_selects_k(self, device):
+        contact = torch.ones((1, 60, 80), dtype=torch.bool, device=device)
+        lap = torch.full((1, 60, 80), 0.7, device=device)
+        idx, valid = select_samples(lap, contact, 3000, "topk")
+        assert int(valid.sum()) == 3000 and idx[0, :3000].tolist() == list(range(3000))
+
+    def test_never_selects_outside_contact(self, device):
+        score = torch.tensor([[0.5, -1.0, 0.1, -1.0]], device=device)
+        assert top_k_mask(score, 3).tolist() == [[True, False, True, False]]
+
+
+class TestThresholdRule:
+    def test_at_most_n_minus_one_and_empty_at_clip(self, device):
+        lap, contact = _random_maps()
+        idx, valid = select_samples(lap.to(device), contact.to(device), 100, "threshold")
+        assert (valid.sum(1) <= 99).all()
+        sel = lap.reshape(2, -1).abs().gather(1, idx.cpu())[valid.cpu()]
+        assert float(sel.min()) > 0
+        clip = torch.full((1, 60, 80), 0.7, device=device)
+        _, valid = select_samples(clip, torch.ones_like(clip, dtype=torch.bool), 3000, "threshold")
+        assert int(valid.sum()) == 0
+
+
+class TestRandomRule:
+    def test_seeded_and_inside_contact(self, device):
+        lap, contact = _random_maps()
+        a = select_samples(lap.to(device), contact.to(device), 50, "random", torch.Generator().manual_seed(3))
+        b = select_samples(lap.to(device), contact.to(device), 50, "random", torch.Generator().manual_seed(3))
+        c = select_samples(lap.to(device), contact.to(device), 50, "random", torch.Generator().manual_seed(4))
+        assert torch.equal(a[0], b[0]) and not torch.equal(a[0], c[0])
+        assert bool(contact.reshape(2, -1).gather(1, a[0].cpu()).all())
+        assert a[1].sum(1).tolist() == [50, 50]
+
+
+def test_bad_rule_and_count():
+    lap, contact = _random_maps()
+    with pytest.raises(ValueError, match="selection"):
+        select_samples(lap, contact, 10, "best")
+    with pytest.raises(ValueError, match="n_samples"):
+        select_samples(lap, contact, 0, "topk")
+
+
+def test_all_pixels_when_n_is_none():
+    lap, contact = _random_maps()
+    idx, valid = select_samples(lap, contact, None)
+    assert valid.sum(1).tolist() == contact.reshape(2, -1).sum(1).tolist()
