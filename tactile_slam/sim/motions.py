@@ -263,7 +263,11 @@ def scan_motion(renderer: GelRenderer, n_frames: int = 3000, seed: int = 0, conf
     lo, hi = cfg.depth_mm
     poses, pressed = [], []
     prev_end = None
-    for k in order:
+    total = 0
+    for visit in range(10 * len(order)):  # the tour repeats if random touch lengths fall short
+        if total >= n_frames:
+            break
+        k = order[visit % len(order)]
         m = int(rng.integers(cfg.touch_frames[0], cfg.touch_frames[1] + 1))
         na = cfg.approach_frames
         t = np.arange(m + 2 * na) / 500.0
@@ -285,8 +289,7 @@ def scan_motion(renderer: GelRenderer, n_frames: int = 3000, seed: int = 0, conf
         poses.append(touch)
         pressed.append(ramp >= 1)
         prev_end = touch[-1]
-        if sum(len(p) for p in poses) >= n_frames:
-            break
+        total = sum(len(p) for p in poses)
     return Motion(np.concatenate(poses)[:n_frames], np.concatenate(pressed)[:n_frames], kind)
 
 

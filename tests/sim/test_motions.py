@@ -1,0 +1,108 @@
+import numpy as np
+import pytest
+
+from tactile_slam.sim.motions import MotionConfig, MotionError, lift, make_motion, tangent_basis, transported_x
+from tactile_slam.sim.objects import make_object
+from tactile_slam.sim.renderer import GelRenderer
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    return GelRenderer(make_object("seed", resolution_mm=0.1))
+
+
+def _is_rigid(p):
+    r = p[:, :3, :3]
+    return np.allclose(r @ r.transpose(0, 2, 1), np.eye(3), atol=1e-9) and np.allclose(np.linalg.det(r), 1)
+
+
+def _max_depth_mm(renderer, poses):
+    """Deepest penetration of the object through the gel plane in view, mm (full res)."""
+    z = renderer.surface_z(poses).reshape(len(poses), -1).min(axis=1)
+    return -z * 1000.0
+
+
+def test_tracking_motion(renderer):
+    m = make_motion(renderer, "tracking", n_frames=80, seed=1)
+    p = m.object_T_sensor
+    assert p.shape == (80, 4, 4) and p.dtype == np.float64 and _is_rigid(p)
+    assert not m.pressed[:10].any() and m.pressed[10:].all()
+    depth = _max_depth_mm(renderer, p[::7])
+    pressed = m.pressed[::7]
+    assert (depth[~pressed] < 0).all()  # lead-in: a gap, no contact
+    assert (depth[pressed] > 0.3 - 0.02).all() and (depth[pressed] < 1.5 + 0.02).all()
+    # the gel is tangent: the sensor z axis follows the inward surface normal, so the
+    # view axis points at the object centre roughly (convex object)
+    out = renderer.render(p[[0, 40, 79]])
+    assert out.in_contact.tolist() == [False, True, True]
+    # consecutive poses move smoothly (25 Hz hand motion: well below 1 mm per frame)
+    step = np.linalg.norm(np.diff(p[10:, :3, 3], axis=0), axis=1)
+    assert step.max() < 0.5e-3
+
+
+def test_contact_loss_protocol(renderer):
+    m = make_motion(renderer, "contact_loss", n_frames=130, seed=0)
+    i = np.arange(130) - 10
+    expected = (i >= 0) & (i % 100 < 75)
+    assert np.array_equal(m.pressed, expected)
+    probe = [10, 84, 85, 109, 110, 129]
+    out = renderer.render(m.object_T_sensor[probe])
+    assert out.in_contact.tolist() == [True, True, False, False, True, True]
+
+
+def test_tracking_same_motion_with_and_without_loss(renderer):
+    a = make_motion(renderer, "tracking", n_frames=120, seed=2)
+    b = make_motion(renderer, "contact_loss", n_frames=120, seed=2)
+    keep = b.pressed
+    assert np.allclose(a.object_T_sensor[keep], b.object_T_sensor[keep])
+
+
+def test_scan_touches_cover_and_break(renderer):
+    cfg = MotionConfig()
+    m = make_motion(renderer, "scan", n_frames=400, seed=0, config=cfg)
+    p = m.object_T_sensor
+    assert p.shape == (400, 4, 4) and _is_rigid(p)
+    # several touches separated by contact-free stretches
+    starts = np.flatnonzero(np.diff(m.pressed.astype(int)) == 1)
+    assert len(starts) >= 4
+    # air frames (not pressed and not in an approach/retract ramp) are contact-free
+    air = ~m.pressed
+    for k in range(1, cfg.approach_frames + 1):
+        air &= ~np.roll(m.pressed, k) & ~np.roll(m.pressed, -k)
+    idx = np.flatnonzero(air)[::5]
+    assert (_max_depth_mm(renderer, p[idx]) < 0).all()
+    # touches are spread over the object: contact points span most of its size
+    centre = renderer.centre
+    z = p[m.pressed, :3, 2]
+    assert np.linalg.svd(z - z.mean(0), compute_uv=False).min() > 0.1  # view directions span 3-D
+    assert np.linalg.norm(p[m.pressed, :3, 3] - centre, axis=1).max() < renderer.radius + 2e-3
+
+
+def test_deterministic_and_seed_dependent(renderer):
+    a = make_motion(renderer, "tracking", n_frames=40, seed=5).object_T_sensor
+    b = make_motion(renderer, "tracking", n_frames=40, seed=5).object_T_sensor
+    c = make_motion(renderer, "tracking", n_frames=40, seed=6).object_T_sensor
+    assert np.array_equal(a, b) and not np.allclose(a, c)
+
+
+def test_helpers():
+    n = np.array([[0.0, 0.0, 1.0], [0.0, 0.0, 1.0]])
+    e1, e2 = tangent_basis(n, np.array([[1.0, 0, 0.5], [0, 0, 1.0]]))  # second hint parallel to n
+    assert np.allclose(np.sum(e1 * n, 1), 0) and np.allclose(np.linalg.norm(e1, axis=1), 1)
+    assert np.allclose(np.cross(n, e1), e2)
+    assert np.allclose(e1[0], [1, 0, 0])
+    x = transported_x(np.array([[0, 0, 1.0], [0, np.sin(0.1), np.cos(0.1)]]), np.array([1.0, 0, 0]))
+    assert np.allclose(x[1], [1, 0, 0])
+    p = np.eye(4)[None]
+    assert np.allclose(lift(p, 0.002)[0, :3, 3], [0, 0, -0.002])
+
+
+def test_errors(renderer):
+    with pytest.raises(MotionError, match="kind"):
+        make_motion(renderer, "orbit")
+    with pytest.raises(MotionError, match="10000"):
+        make_motion(renderer, "long", n_frames=500)
+    with pytest.raises(MotionError, match="at least"):
+        make_motion(renderer, "tracking", n_frames=5)
+    with pytest.raises(MotionError, match="at least"):
+        make_motion(renderer, "scan", n_frames=20)
