@@ -15,6 +15,7 @@ COMMAND_MODULES = (
     "tactile_slam.cli.calibrate",
     "tactile_slam.cli.simulate",
     "tactile_slam.cli.eval",
+    "tactile_slam.cli.record",
 )
 
 

@@ -171,6 +171,14 @@ class VideoSource(SequenceSource):
         return state
 
 
+def _frame_problem(frame: np.ndarray, size: tuple[int, int] | None) -> str | None:
+    if frame.ndim != 3 or frame.shape[2] != 3 or frame.dtype != np.uint8:
+        return f"must be (H, W, 3) uint8, got {frame.shape} {frame.dtype}"
+    if size is not None and (frame.shape[1], frame.shape[0]) != size:
+        return f"is {frame.shape[1]}x{frame.shape[0]}, earlier frames are {size[0]}x{size[1]}"
+    return None
+
+
 def write_video(path: str | Path, frames: np.ndarray | torch.Tensor | Iterable, fps: float) -> int:
     """Write BGR frames to a lossless FFV1 video (read back bit-exactly).
 
@@ -185,7 +193,9 @@ def write_video(path: str | Path, frames: np.ndarray | torch.Tensor | Iterable, 
 
     Raises:
         InputError: no frames, a frame that is not ``(H, W, 3)`` uint8, frames of
-            different sizes, or a file OpenCV cannot create.
+            different sizes (no file is left behind), or a file OpenCV cannot create.
+        Whatever the iterable raises (a camera that disconnects, Ctrl-C): the frames
+            written so far are kept as a valid video.
     """
     path = Path(path)
     if not fps > 0:
@@ -196,34 +206,26 @@ def write_video(path: str | Path, frames: np.ndarray | torch.Tensor | Iterable, 
     writer: cv2.VideoWriter | None = None
     size: tuple[int, int] | None = None
     count = 0
+    bad_frame = False
     try:
         for frame in frames:
-            if isinstance(frame, torch.Tensor):
-                frame = frame.detach().cpu().numpy()
-            frame = np.asarray(frame)
-            if frame.ndim != 3 or frame.shape[2] != 3 or frame.dtype != np.uint8:
-                raise InputError(
-                    f"frame {count} for {path} must be (H, W, 3) uint8, got {frame.shape} {frame.dtype}"
-                )
+            frame = np.asarray(frame.detach().cpu() if isinstance(frame, torch.Tensor) else frame)
+            problem = _frame_problem(frame, size)
+            if problem is not None:
+                bad_frame = True
+                raise InputError(f"frame {count} for {path} {problem}")
             if writer is None:
                 size = (frame.shape[1], frame.shape[0])
                 writer = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"FFV1"), float(fps), size)
                 if not writer.isOpened():
                     raise InputError(f"cannot create video {path} (FFV1 writer failed to open)")
-            elif (frame.shape[1], frame.shape[0]) != size:
-                raise InputError(
-                    f"frame {count} for {path} is {frame.shape[1]}x{frame.shape[0]}, "
-                    f"earlier frames are {size[0]}x{size[1]}"
-                )
             writer.write(np.ascontiguousarray(frame))
             count += 1
-    except BaseException:
-        if writer is not None:  # leave no half-written file behind
+    finally:
+        if writer is not None:
             writer.release()
-            path.unlink(missing_ok=True)
-        raise
-    if writer is not None:
-        writer.release()
+            if bad_frame:
+                path.unlink(missing_ok=True)
     if count == 0:
         raise InputError(f"no frames to write to {path}")
     return count

@@ -48,6 +48,15 @@ class TestWriteVideo:
             write_video(tmp_path / "v.avi", bad, fps=25)
         assert not (tmp_path / "v.avi").exists()
 
+    def test_source_error_keeps_frames_written(self, tmp_path, frames):
+        def disconnecting():
+            yield from frames[:5]
+            raise InputError("camera unplugged")
+
+        with pytest.raises(InputError, match="unplugged"):
+            write_video(tmp_path / "v.avi", disconnecting(), fps=25)
+        assert np.array_equal(np.stack([f.bgr for f in VideoSource(tmp_path / "v.avi")]), frames[:5])
+
     def test_size_change(self, tmp_path, frames):
         with pytest.raises(InputError, match="frame 1 .* 32x24, earlier frames are 64x48"):
             write_video(tmp_path / "v.avi", [frames[0], frames[1, :24, :32]], fps=25)
