@@ -191,3 +191,42 @@ class TestCheckBackground:
     def test_needs_two_frames(self, gel_frames):
         with pytest.raises(InputError, match="N >= 2"):
             check_background(gel_frames(1, (12, 16)))
+
+
+class TestRealSensorImages:
+    """The background check on real GelSight Mini images (../shared)."""
+
+    @pytest.fixture
+    def real(self, mini_data):
+        calib = mini_data / "calibration"
+        background = cv2.imread(str(calib / "background.png"))
+        rows = (calib / "catalog.csv").read_text().splitlines()[1:3]
+        presses = [cv2.imread(str(calib / row.split(",")[0] / "gelsight.png")) for row in rows]
+        assert background is not None and all(p is not None for p in presses)
+        return background, presses
+
+    @staticmethod
+    def noisy(image, n, seed):
+        rng = np.random.default_rng(seed)
+        return np.clip(np.round(image[None] + rng.normal(0, 1.5, (n, *image.shape))), 0, 255).astype(np.uint8)
+
+    def test_untouched_window_passes(self, tmp_path, real):
+        background, presses = real
+        frames = np.concatenate([self.noisy(background, 10, 0), self.noisy(presses[0], 2, 1)])
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", BackgroundWarning)
+            scan = Scan(make_scan(tmp_path / "s", frames))
+        assert np.abs(scan.background - background).mean() < 0.5  # noise averages out
+        assert np.array_equal(scan[0].bgr, frames[10])
+
+    @pytest.mark.parametrize("which", [0, 1])
+    def test_real_press_in_window_warns(self, tmp_path, real, which):
+        background, presses = real
+        frames = np.concatenate([self.noisy(background, 10, 0), self.noisy(presses[which], 2, 1)])
+        frames[6] = frames[10 + which % 2]
+        with pytest.warns(BackgroundWarning, match="frame 6"):
+            scan = Scan(make_scan(tmp_path / "s", frames))
+        c = scan.background_check
+        # the most deviant pixel lies where the press changed the colour most
+        dist = np.linalg.norm(presses[which].astype(np.float32) - background, axis=-1)
+        assert dist[c.row, c.col] > 15
