@@ -1,0 +1,40 @@
+import json
+
+import numpy as np
+import pytest
+
+from tactile_slam.cli.main import main
+from tactile_slam.eval.trajectory import relative_to
+from tactile_slam.sim.episode import SimulationSettings, simulate_episode
+
+
+@pytest.fixture(scope="module")
+def episode(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ep")
+    simulate_episode(out, SimulationSettings(object="seed", kind="tracking", frames=30, seed=0))
+    return out
+
+
+def test_eval_cli_writes_metrics_and_plot(episode, tmp_path):
+    gt = np.load(episode / "gt_poses.npy")
+    est = relative_to(gt, 10)
+    est[:10] = np.nan  # background window: no pose
+    est[11:, 1, 3] += 0.0002  # 0.2 mm error in y from frame 11 on
+    est[20] = np.nan
+    run = tmp_path / "run"
+    run.mkdir()
+    np.save(run / "poses.npy", est)
+    assert main(["eval", str(run), "--gt", str(episode)]) == 0
+    m = json.loads((run / "metrics.json").read_text())
+    t = m["tracking"]
+    assert m["reference_frame"] == 10 and m["object"] == "seed" and m["kind"] == "tracking"
+    assert t["per_axis_mae"]["y_mm"] == pytest.approx(0.2) and t["per_axis_mae"]["x_mm"] == pytest.approx(0.0)
+    assert t["per_axis_mae"]["n_frames"] == 18  # frames 11..29 minus frame 20
+    assert t["estimated_fraction"] == pytest.approx(19 / 20)
+    assert (run / "tracking_error.png").stat().st_size > 1000
+
+
+def test_eval_cli_errors(episode, tmp_path):
+    assert main(["eval", str(tmp_path), "--gt", str(episode)]) == 2  # no poses.npy
+    np.save(tmp_path / "poses.npy", np.tile(np.eye(4), (5, 1, 1)))
+    assert main(["eval", str(tmp_path), "--gt", str(episode)]) == 2  # wrong length
