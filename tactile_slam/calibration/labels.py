@@ -162,7 +162,8 @@ def detect_contact_circle(
     cx, cy = float((wgt * xs).sum() / wgt.sum()), float((wgt * ys).sum() / wgt.sum())
 
     angles = np.linspace(0.0, 2.0 * math.pi, cfg.n_rays, endpoint=False)
-    radii = np.arange(1.0, ball_radius_px, 0.5, dtype=np.float32)
+    step = 0.5
+    radii = np.arange(1.0, ball_radius_px, step, dtype=np.float32)
     cos, sin = np.cos(angles)[:, None], np.sin(angles)[:, None]
     r, visible, residual = math.nan, 0.0, math.nan
     for _ in range(cfg.iterations):
@@ -173,14 +174,20 @@ def detect_contact_circle(
         peak = prof.argmax(axis=1)
         # a ray counts when it stays in the image a few px beyond its peak, and the peak
         # is interior to the search range and above the noise threshold
-        beyond = np.minimum(peak + int(2.0 / 0.5), radii.size - 1)
+        beyond = np.minimum(peak + int(2.0 / step), radii.size - 1)
         in_until = np.cumprod(inside, axis=1)[np.arange(cfg.n_rays), beyond].astype(bool)
         ok = in_until & (peak > 0) & (peak < radii.size - 1) & (prof[np.arange(cfg.n_rays), peak] > threshold)
         visible = float(ok.mean())
         if ok.sum() < 8:
             break
-        px = rx[np.arange(cfg.n_rays), peak][ok].astype(np.float64)
-        py = ry[np.arange(cfg.n_rays), peak][ok].astype(np.float64)
+        # sub-sample peak: vertex of the parabola through the peak and its neighbours
+        rows = np.arange(cfg.n_rays)[ok]
+        p0, pm, pp = prof[rows, peak[ok]], prof[rows, peak[ok] - 1], prof[rows, peak[ok] + 1]
+        curv = pm - 2.0 * p0 + pp
+        frac = np.where(curv < 0, 0.5 * (pm - pp) / np.where(curv < 0, curv, -1.0), 0.0).clip(-0.5, 0.5)
+        rad = radii[peak[ok]] + frac * step
+        px = cx + np.cos(angles[ok]) * rad
+        py = cy + np.sin(angles[ok]) * rad
         cx, cy, r, residual = _trimmed_circle(px, py)
     if not math.isfinite(r):
         raise NoContactError(
