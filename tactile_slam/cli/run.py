@@ -16,7 +16,9 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", default=None, help="YAML config (ours or GelSLAM's) or a preset name")
     p.add_argument("--device", default="cpu", help="cpu or cuda")
-    p.add_argument("--method", default="nf-kf", choices=METHODS, help="tracking variant")
+    p.add_argument("--method", default="gelslam", choices=METHODS,
+                   help="gelslam (full system, default), ablations gs-onlysift/gs-onlynf/gs-imagesift, "
+                        "nf-kf (tracker only) or nf (frame-to-frame NormalFlow)")
     p.add_argument("--model", default=None, help="calibration model file (default: the sensor's packaged model)")
     p.add_argument("--batch-size", type=int, default=8, help="frames per geometry batch")
     p.add_argument("--keyframe-panels", action="store_true", help="write a geometry picture per keyframe")
@@ -34,6 +36,7 @@ def run(args) -> int:
                          batch_size=args.batch_size, progress=not args.no_progress)
     result = OfflinePipeline(source, config, out, options, vis).run()
     s = result.stats
+    loops = f", {s['loops']} loops, {s['groups']} groups" if "loops" in s else ""
     print(f"run: {s['frames']} frames, {s['contact_frames']} in contact, {s['keyframes']} keyframes, "
-          f"{s['sessions']} sessions, {s['fps']:.1f} frames/s -> {out}")
+          f"{s['sessions']} sessions{loops}, {s['fps']:.1f} frames/s -> {out}")
     return 0

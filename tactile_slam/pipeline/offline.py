@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from tactile_slam.backend import BackEnd
 from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError
@@ -29,7 +30,16 @@ from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
 from tactile_slam.tracking.keyframe import Keyframe
 from tactile_slam.tracking.tracker import NormalFlowRegistrar, Tracker
 
-METHODS = ("nf", "nf-kf")
+# method -> loop-closure mode of the back end (None: no back end, odometry only)
+LOOP_MODES = {
+    "gelslam": "full",
+    "gs-onlysift": "only_sift",
+    "gs-onlynf": "only_nf",
+    "gs-imagesift": "image_sift",
+    "nf-kf": None,
+    "nf": None,
+}
+METHODS = tuple(LOOP_MODES)
 
 
 @dataclass
@@ -37,15 +47,17 @@ class RunOptions:
     """How to run.
 
     Attributes:
-        method: ``"nf"`` (frame-to-frame NormalFlow, no keyframes: the old NormalFlow
-            with 5000 random samples and no checks) or ``"nf-kf"`` (the tracker).
+        method: ``"gelslam"`` (the full system: tracker, loop closure, pose graph),
+            the ablations ``"gs-onlysift"``, ``"gs-onlynf"``, ``"gs-imagesift"``
+            (method.md 9.5), ``"nf-kf"`` (the tracker alone) or ``"nf"``
+            (frame-to-frame NormalFlow without keyframes: 5000 random samples, no checks).
         device: torch device for geometry and registration.
         model: calibration model path (default: the sensor's packaged model).
         batch_size: frames per geometry batch.
         progress: show a progress bar.
     """
 
-    method: str = "nf-kf"
+    method: str = "gelslam"
     device: str = "cpu"
     model: str | None = None
     batch_size: int = 8
@@ -128,10 +140,12 @@ class OfflinePipeline:
             raise InputError(f"{self.source}: no frames to process")
         builder, pending = self._builder(first, frames)
         tracker = self._tracker()
-        backend = OdometryMap()
+        mode = LOOP_MODES[opts.method]
+        backend = BackEnd(self.config, mode) if mode is not None else OdometryMap()
+        images: dict[int, torch.Tensor] = {}  # recent raw images, for image-SIFT keyframes
         indices, kf_of, kf_T = [], [], []
         keyframes: list[Keyframe] = []
-        t_geom, t_track = [], []
+        t_geom, t_track, t_back = [], [], []
         n_total = len(self.source) if hasattr(self.source, "__len__") else None
         bar = tqdm(total=n_total, disable=not opts.progress, unit="frame", desc="tracking")
         t_start = time.perf_counter()
@@ -139,7 +153,11 @@ class OfflinePipeline:
 
         def emit(kfs):
             for kf in kfs:
+                if mode == "image_sift":
+                    kf.image = images.get(kf.video_index)
+                t0 = time.perf_counter()
                 backend.add(kf)
+                t_back.append(time.perf_counter() - t0)
                 keyframes.append(kf)
                 self.visualizer.on_keyframe(kf)
 
@@ -151,6 +169,9 @@ class OfflinePipeline:
                 t_geom.extend([(time.perf_counter() - t0) / len(batch)] * len(batch))
                 for i in range(len(fr)):
                     one = fr[i]
+                    if mode == "image_sift":
+                        images = {k: v for k, v in images.items() if k >= int(batch.index[i]) - 2}
+                        images[int(batch.index[i])] = batch.bgr[i].cpu() if batch.bgr is not None else None
                     t0 = time.perf_counter()
                     step = tracker.step(one)
                     t_track.append(time.perf_counter() - t0)
@@ -169,7 +190,7 @@ class OfflinePipeline:
             bar.close()
         wall = time.perf_counter() - t_start
         backend.finish()
-        result = self._write(indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, wall, error)
+        result = self._write(indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, t_back, wall, error)
         self.visualizer.close()
         if error is not None and not isinstance(error, KeyboardInterrupt):
             raise error
@@ -182,7 +203,7 @@ class OfflinePipeline:
         return builder.from_gradients(batch.gradients, batch.contact, batch.index, batch.timestamp)
 
     # ------------------------------------------------------------------ outputs
-    def _write(self, indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, wall, error) -> RunResult:
+    def _write(self, indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, t_back, wall, error) -> RunResult:
         out = self.out_dir
         n = len(indices)
         contact_frames = sum(1 for k in kf_of if k >= 0)
@@ -197,7 +218,8 @@ class OfflinePipeline:
             idx = np.asarray(indices)
             kf_of_full[idx] = kf_of
             kf_T_full[idx] = np.stack(kf_T)
-        by_group, groups = frame_poses(kf_of_full, kf_T_full, backend.start_T_kf, backend.group)
+        start_T_kf, group_of_kf = backend.start_T_kf, backend.group
+        by_group, groups = frame_poses(kf_of_full, kf_T_full, start_T_kf, group_of_kf)
         poses = main_group_poses(by_group, groups)
         fps = float(getattr(self.source, "fps", self.config.sensor.fps) or self.config.sensor.fps)
         np.save(out / "poses.npy", poses)
@@ -205,8 +227,8 @@ class OfflinePipeline:
         np.save(out / "frame_group.npy", groups)
         write_tum(out / "trajectory_tum.txt", poses, np.arange(t) / fps)
         write_json(out / "keyframes.json", [
-            {"id": k.id, "video_index": k.video_index, "session": k.session, "group": backend.group[k.id],
-             "new_session": k.new_session, "pose": backend.start_T_kf[k.id].tolist()}
+            {"id": k.id, "video_index": k.video_index, "session": k.session, "group": group_of_kf[k.id],
+             "new_session": k.new_session, "pose": start_T_kf[k.id].tolist()}
             for k in keyframes
         ])
         med = lambda xs: float(np.median(xs) * 1000) if xs else float("nan")  # noqa: E731
@@ -218,18 +240,40 @@ class OfflinePipeline:
             "frames_with_pose": int(np.isfinite(poses).all(axis=(1, 2)).sum()),
             "keyframes": len(keyframes),
             "sessions": len({k.session for k in keyframes}),
-            "groups": len(set(backend.group.values())),
+            "groups": len(set(group_of_kf.values())),
             "fps": n / wall if wall > 0 else float("nan"),
             "wall_time_s": wall,
             "timing_ms": {"geometry": med(t_geom), "tracking": med(t_track),
-                          "total": med([a + b for a, b in zip(t_geom, t_track)])},
+                          "total": med([a + b for a, b in zip(t_geom, t_track)]),
+                          "backend_per_keyframe": med(t_back)},
             "completed": error is None,
         }
+        if isinstance(backend, BackEnd):
+            stats.update(self._write_backend(backend, med))
         if error is not None:
             stats["error"] = f"{type(error).__name__}: {error}"
         write_json(out / "stats.json", stats)
         self.config.save(out / "config.yaml")
         return RunResult(poses, by_group, groups, keyframes, stats)
+
+
+    def _write_backend(self, backend: BackEnd, med) -> dict:
+        """``loops.json``, ``pose_graph.g2o`` and the back end's statistics."""
+        out = self.out_dir
+        write_json(out / "loops.json", [loop.to_dict() for loop in backend.loops])
+        if backend.graph.num_nodes:
+            backend.graph.to_g2o(out / "pose_graph.g2o")
+        st = backend.stats
+        det = backend.detector.stats if backend.detector is not None else None
+        return {
+            "coverage_keyframes": len(backend.coverage.active),
+            "loop_candidates": det.candidates if det is not None else 0,
+            "loops": st.loops,
+            "group_merges": st.merges,
+            "timing_ms_per_keyframe": {"loop_detection": med(st.time_loop_detection),
+                                       "pose_graph": med(st.time_pose_graph),
+                                       "coverage": med(st.time_coverage)},
+        }
 
 
 def _chain(first: list, rest):

@@ -1,0 +1,185 @@
+"""The SLAM back end: keyframes -> loop closure -> session merging -> pose graph
+(method.md sections 6-7).
+
+:class:`BackEnd` is a pure algorithm object: :meth:`BackEnd.add` takes each keyframe
+the tracker emits, in order, and keeps ``start_T_kf`` (every keyframe's pose in its
+connected group's start frame, metres) and ``group`` (keyframe id -> group id, the id of
+the group's root session) up to date. Per keyframe (offline step order of method 7.2):
+
+1. insert the node with its chained initial value, and its prior (session head) or
+   odometry factor;
+2. detect loops against the *active coverage* keyframes, as the coverage set was before
+   this keyframe;
+3. add every accepted loop as a between factor; merge the groups it connects (the root
+   is the group with most keyframes, ties to the new keyframe's group), moving each
+   absorbed group rigidly through the loop measurement before solving (the public code
+   leaves absorbed poses at their identity-anchored values) and removing its prior;
+4. solve incrementally (only what the new factors disturb);
+5. insert the keyframe into the coverage set with its solved pose, refresh the poses of
+   the keyframes the solve moved, and merge the coverage graphs of merged groups;
+   keyframes the coverage set deactivates leave the loop detector.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import torch
+
+from tactile_slam.config import Config
+from tactile_slam.loop.coverage import CoverageSet
+from tactile_slam.loop.detector import Loop, LoopDetector
+from tactile_slam.posegraph.graph import PoseGraph
+from tactile_slam.posegraph.incremental import IncrementalSolver
+from tactile_slam.tracking.keyframe import Keyframe
+
+
+@dataclass
+class BackEndStats:
+    """Counters (the paper's Table II/V statistics) and cumulative times in seconds."""
+
+    keyframes: int = 0
+    loops: int = 0
+    merges: int = 0
+    time_loop_detection: list[float] = field(default_factory=list)
+    time_pose_graph: list[float] = field(default_factory=list)
+    time_coverage: list[float] = field(default_factory=list)
+
+
+class BackEnd:
+    """Loop closure and pose-graph optimisation over keyframes.
+
+    Args:
+        config: settings (``loop``, ``posegraph``, ``normalflow``, ...).
+        loop_mode: loop-detection mode (``full``, ``only_sift``, ``only_nf``,
+            ``image_sift``) or ``None`` for no loop closure (sessions stay separate
+            groups, each keyframe is still in the coverage set).
+    """
+
+    def __init__(self, config: Config, loop_mode: str | None = "full"):
+        self.config = config
+        self.graph = PoseGraph(config.posegraph)
+        self.solver = IncrementalSolver(self.graph, config.posegraph)
+        self.coverage = CoverageSet(config)
+        self.detector = LoopDetector(config, loop_mode) if loop_mode is not None else None
+        self.keyframes: dict[int, Keyframe] = {}
+        self.loops: list[Loop] = []
+        self.stats = BackEndStats()
+        self._parent: dict[int, int] = {}  # union-find over groups (root session ids)
+        self._members: dict[int, list[int]] = {}  # root -> keyframe ids
+        self._session_group: dict[int, int] = {}  # session -> its group's root at creation
+        self._head: dict[int, int] = {}  # root -> keyframe id holding that group's prior
+        self._last_in_session: dict[int, int] = {}
+
+    # ------------------------------------------------------------------ groups
+    def _find(self, g: int) -> int:
+        root = g
+        while self._parent[root] != root:
+            root = self._parent[root]
+        while self._parent[g] != root:  # path compression
+            self._parent[g], g = root, self._parent[g]
+        return root
+
+    def group_of(self, kf_id: int) -> int:
+        """Connected-group id of a keyframe."""
+        return self._find(self._session_group[self.keyframes[kf_id].session])
+
+    @property
+    def group(self) -> dict[int, int]:
+        """Keyframe id -> group id, for every keyframe."""
+        return {k: self.group_of(k) for k in self.keyframes}
+
+    @property
+    def start_T_kf(self) -> dict[int, torch.Tensor]:
+        """Keyframe id -> ``(4, 4)`` float64 pose in its group's start frame, metres."""
+        ids = list(self.keyframes)
+        if not ids:
+            return {}
+        poses = self.graph.poses(ids)
+        return dict(zip(ids, poses))
+
+    # ------------------------------------------------------------------ step
+    def add(self, kf: Keyframe) -> list[Loop]:
+        """Process one keyframe; returns the loops accepted for it."""
+        self.keyframes[kf.id] = kf
+        self.stats.keyframes += 1
+        prev = self._last_in_session.get(kf.session)
+        if kf.new_session or prev is None:
+            self._parent[kf.session] = kf.session
+            self._session_group[kf.session] = kf.session
+            self._members[kf.session] = [kf.id]
+            self._head[kf.session] = kf.id
+            self.graph.add_node(kf.id)
+            self.graph.add_prior(kf.id)
+        else:
+            self._members[self.group_of(prev)].append(kf.id)
+            self.graph.add_node(kf.id, self.graph.pose(prev) @ kf.prev_T_kf)
+            self.graph.add_between(prev, kf.id, kf.prev_T_kf, kind="odometry")
+        self._last_in_session[kf.session] = kf.id
+
+        t0 = time.perf_counter()
+        loops: list[Loop] = []
+        if self.detector is not None:
+            eligible = [k for k in self.coverage.active if k in self.detector]
+            poses = self.start_T_kf
+            loops = self.detector.detect(kf, eligible, self.group, poses, self.keyframes)
+            self.detector.add(kf)
+        t1 = time.perf_counter()
+        self.stats.time_loop_detection.append(t1 - t0)
+
+        merged: list[int] = []
+        for loop in loops:
+            self.graph.add_between(loop.ref_id, loop.tar_id, loop.ref_T_tar, kind="loop")
+            merged += self._merge(loop)
+        self.loops += loops
+        self.stats.loops += len(loops)
+        self.solver.update()
+        t2 = time.perf_counter()
+        self.stats.time_pose_graph.append(t2 - t1)
+
+        root = self.group_of(kf.id)
+        poses = dict(zip(self._members[root], self.graph.poses(self._members[root])))
+        self.coverage.update_poses({k: p for k, p in poses.items() if k in self.coverage})
+        if merged:
+            self.coverage.merge(root, merged)
+        before = set(self.coverage.active)
+        self.coverage.add(kf, poses[kf.id], root)
+        if self.detector is not None:
+            for gone in before - set(self.coverage.active):
+                if gone in self.detector:
+                    self.detector.remove(gone)
+            if not self.coverage.is_active(kf.id) and kf.id in self.detector:
+                self.detector.remove(kf.id)
+        self.stats.time_coverage.append(time.perf_counter() - t2)
+        return loops
+
+    def finish(self) -> None:
+        """Final full warm-started solve (end of the scan)."""
+        if self.keyframes:
+            self.solver.finalize()
+
+    # ------------------------------------------------------------------ merging
+    def _merge(self, loop: Loop) -> list[int]:
+        """Merge the groups of ``loop``'s keyframes; returns the absorbed group ids."""
+        g_ref, g_tar = self.group_of(loop.ref_id), self.group_of(loop.tar_id)
+        if g_ref == g_tar:
+            return []
+        n_ref, n_tar = len(self._members[g_ref]), len(self._members[g_tar])
+        root, absorbed = (g_ref, g_tar) if n_ref > n_tar else (g_tar, g_ref)
+        if self.config.posegraph.reinit_merged:
+            # move the absorbed group rigidly so that the loop measurement holds
+            t_ref, t_tar = self.graph.pose(loop.ref_id), self.graph.pose(loop.tar_id)
+            if absorbed == g_tar:
+                corr = t_ref @ loop.ref_T_tar @ torch.linalg.inv(t_tar)
+            else:
+                corr = t_tar @ torch.linalg.inv(loop.ref_T_tar) @ torch.linalg.inv(t_ref)
+            ids = self._members[absorbed]
+            moved = corr @ self.graph.poses(ids)
+            for k, pose in zip(ids, moved):
+                self.graph.set_pose(k, pose)
+        self.graph.remove_prior(self._head.pop(absorbed))
+        self._parent[absorbed] = root
+        self._members[root] += self._members.pop(absorbed)
+        self.stats.merges += 1
+        return [absorbed]
