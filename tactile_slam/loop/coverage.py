@@ -130,26 +130,42 @@ def pixel_coords(points: torch.Tensor, m_per_px: float, shape: tuple[int, int]) 
     return torch.stack([points[..., 0] / m_per_px + (w - 1) / 2.0, points[..., 1] / m_per_px + (h - 1) / 2.0], -1)
 
 
-def sample_nearest(maps: torch.Tensor, cr: torch.Tensor) -> torch.Tensor:
-    """Nearest-pixel lookup, 0 outside the image.
+def lookup(buffer: torch.Tensor, slots: torch.Tensor, cr: torch.Tensor, shape: tuple[int, int],
+           bilinear: bool = False) -> torch.Tensor:
+    """Read maps stored as rows of a buffer at projected pixel positions, 0 outside.
 
     Args:
-        maps: ``(P, H, W)`` or ``(P, C, H, W)``.
-        cr: ``(P, N, 2)`` float ``(col, row)``.
+        buffer: ``(S, H * W)`` maps, one per row (row-major pixels).
+        slots: ``(P,)`` int64 row of the map to read for each point set.
+        cr: ``(P, N, 2)`` float ``(col, row)`` positions.
+        shape: ``(H, W)``.
+        bilinear: bilinear interpolation (out-of-image neighbours read 0) instead of
+            the nearest pixel (ties round half to even).
 
     Returns:
-        ``(P, N)`` or ``(P, C, N)``.
+        ``(P, N)`` values.
     """
-    squeeze = maps.ndim == 3
-    if squeeze:
-        maps = maps.unsqueeze(1)
-    p, c, h, w = maps.shape
-    col = torch.round(cr[..., 0]).long()
-    row = torch.round(cr[..., 1]).long()
-    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-    idx = (row.clamp(0, h - 1) * w + col.clamp(0, w - 1)).unsqueeze(1).expand(p, c, -1)
-    out = maps.reshape(p, c, h * w).gather(2, idx) * inside.unsqueeze(1)
-    return out.squeeze(1) if squeeze else out
+    h, w = shape
+    flat = buffer.reshape(-1)
+    rows = slots.view(-1, 1) * (h * w)
+    if not bilinear:
+        col = torch.round(cr[..., 0]).long()
+        row = torch.round(cr[..., 1]).long()
+        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        return flat.take(rows + row.clamp(0, h - 1) * w + col.clamp(0, w - 1)) * inside
+    c0 = torch.floor(cr[..., 0])
+    r0 = torch.floor(cr[..., 1])
+    fc = cr[..., 0] - c0
+    fr = cr[..., 1] - r0
+    c0 = c0.long()
+    r0 = r0.long()
+    out = torch.zeros_like(fc, dtype=buffer.dtype)
+    for dr, dc, wt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
+        r = r0 + dr
+        c = c0 + dc
+        inside = (c >= 0) & (c < w) & (r >= 0) & (r < h)
+        out = out + flat.take(rows + r.clamp(0, h - 1) * w + c.clamp(0, w - 1)) * (wt * inside)
+    return out
 
 
 # --------------------------------------------------------------------------- coverage set
@@ -163,8 +179,7 @@ class _Node:
     group: int
     points: torch.Tensor  # (N, 3) contact points, row-major, metres, keyframe frame
     weights: torch.Tensor  # (N,) boundary weights at those points
-    wmap: torch.Tensor  # (H, W) boundary weights
-    hmap: torch.Tensor  # (H, W) height, px
+    slot: int  # row of the set's weight and height buffers
     radius: float  # max |point|, metres
     radius_xy: float  # max |point_xy|, metres
     start_T_kf: torch.Tensor  # (4, 4) float64
@@ -192,7 +207,13 @@ class CoverageSet:
         gate = config.loop.coverage_depth_gate_mm
         self.depth_gate_m = None if gate is None else float(gate) / 1000.0
         self.device = None if device is None else torch.device(device)
+        self.shape = config.sensor.shape
         self._nodes: dict[int, _Node] = {}
+        # Weight and height maps of active keyframes, one row each (slots are reused
+        # after deactivation), so batched lookups gather without stacking maps.
+        self._wbuf = torch.zeros(0, self.shape[0] * self.shape[1])
+        self._hbuf = torch.zeros(0, self.shape[0] * self.shape[1])
+        self._free: list[int] = []
 
     # ------------------------------------------------------------------ queries
     def __len__(self) -> int:
@@ -222,8 +243,21 @@ class CoverageSet:
         return self._node(kf_id).group
 
     def weights(self, kf_id: int) -> torch.Tensor:
-        """``(H, W)`` boundary-weight map of an active keyframe."""
-        return self._node(kf_id).wmap
+        """``(H, W)`` boundary-weight map of an active keyframe (a view)."""
+        return self._wbuf[self._active_node(kf_id).slot].view(self.shape)
+
+    def lookup(self, kf_ids: Sequence[int], cr: torch.Tensor, heights: bool = False,
+               bilinear: bool = False) -> torch.Tensor:
+        """Weights (or heights, px) of active keyframes ``kf_ids`` at ``(P, N, 2)``
+        pixel positions ``(col, row)``, one row of points per id: ``(P, N)``."""
+        slots = torch.tensor([self._active_node(i).slot for i in kf_ids], device=self._wbuf.device)
+        return lookup(self._hbuf if heights else self._wbuf, slots, cr, self.shape, bilinear)
+
+    def _active_node(self, kf_id: int) -> _Node:
+        node = self._node(kf_id)
+        if not node.active:
+            raise CoverageError(f"keyframe {kf_id} is inactive: its maps were released")
+        return node
 
     def pose(self, kf_id: int) -> torch.Tensor:
         """``start_T_kf`` ``(4, 4)`` float64 of ``kf_id``."""
@@ -295,6 +329,8 @@ class CoverageSet:
         frame = keyframe.frame
         if len(frame) != 1:
             raise CoverageError(f"keyframe {keyframe.id}: frame must hold one image, got {len(frame)}")
+        if tuple(frame.shape) != tuple(self.shape):
+            raise CoverageError(f"keyframe {keyframe.id}: image size {tuple(frame.shape)} != sensor {self.shape}")
         if self.device is None:
             self.device = frame.device
         dev = self.device
@@ -304,19 +340,34 @@ class CoverageSet:
         height = frame.height[0].to(dev, torch.float32)
         if not torch.isfinite(height[contact]).all():
             raise CoverageError(f"keyframe {keyframe.id}: height has NaN or Inf in contact")
+        pose = _check_pose(start_T_kf, dev)
         wmap = boundary_weights(contact.unsqueeze(0))[0]
         points = point_map(height.unsqueeze(0), self.m_per_px)[0][contact]
+        slot = self._alloc()
+        self._wbuf[slot] = wmap.reshape(-1)
+        self._hbuf[slot] = height.reshape(-1)
         return _Node(
             id=int(keyframe.id),
             group=int(group),
             points=points,
             weights=wmap[contact],
-            wmap=wmap,
-            hmap=height,
+            slot=slot,
             radius=float(points.norm(dim=1).max()),
             radius_xy=float(points[:, :2].norm(dim=1).max()),
-            start_T_kf=_check_pose(start_T_kf, dev),
+            start_T_kf=pose,
         )
+
+    def _alloc(self) -> int:
+        if self._wbuf.device != self.device:
+            self._wbuf = self._wbuf.to(self.device)
+            self._hbuf = self._hbuf.to(self.device)
+        if not self._free:
+            cap = self._wbuf.shape[0]
+            grow = max(cap, 8)
+            self._wbuf = torch.cat([self._wbuf, self._wbuf.new_zeros(grow, self._wbuf.shape[1])])
+            self._hbuf = torch.cat([self._hbuf, self._hbuf.new_zeros(grow, self._hbuf.shape[1])])
+            self._free = list(range(cap + grow - 1, cap - 1, -1))
+        return self._free.pop()
 
     def _link_and_prune(self, node: _Node, others: Sequence[_Node]) -> None:
         cand = self._candidates(node, others)
@@ -339,11 +390,10 @@ class CoverageSet:
             self._nodes[nb_id].neighbours.discard(node.id)
         node.neighbours.clear()
         node.active = False
-        # Inactive keyframes are never compared again: release their maps.
+        # Inactive keyframes are never compared again: release their data.
         node.points = node.points[:0]
         node.weights = node.weights[:0]
-        node.wmap = node.wmap.new_zeros(0, 0)
-        node.hmap = node.hmap.new_zeros(0, 0)
+        self._free.append(node.slot)
 
     def _candidates(self, node: _Node, others: Sequence[_Node]) -> list[_Node]:
         """Others that can overlap ``node`` at all: z axes not opposed, and footprints
@@ -395,11 +445,11 @@ class CoverageSet:
                 [torch.ones(r.points.shape[0], dtype=torch.bool, device=pts.device) for r in chunk], batch_first=True
             )
             moved = transform_points(t_T_r[start:stop], pts)
-            cr = pixel_coords(moved, self.m_per_px, tar.wmap.shape)
-            maps = tar.wmap.unsqueeze(0).expand(len(chunk), -1, -1)
-            w = sample_nearest(maps, cr)
+            cr = pixel_coords(moved, self.m_per_px, self.shape)
+            slots = torch.full((len(chunk),), tar.slot, device=pts.device)
+            w = lookup(self._wbuf, slots, cr, self.shape)
             if self.depth_gate_m is not None:
-                h = sample_nearest(tar.hmap.unsqueeze(0).expand(len(chunk), -1, -1), cr) * self.m_per_px
+                h = lookup(self._hbuf, slots, cr, self.shape) * self.m_per_px
                 w = w * ((moved[..., 2] - h).abs() < self.depth_gate_m)
             out.append((w * valid).sum(dim=1))
             start = stop
@@ -412,10 +462,11 @@ class CoverageSet:
         for start in range(0, len(refs), step):
             chunk = refs[start:start + step]
             moved = transform_points(r_T_p[start:start + step], points.unsqueeze(0).expand(len(chunk), -1, -1))
-            cr = pixel_coords(moved, self.m_per_px, chunk[0].wmap.shape)
-            w = sample_nearest(torch.stack([r.wmap for r in chunk]), cr)
+            cr = pixel_coords(moved, self.m_per_px, self.shape)
+            slots = torch.tensor([r.slot for r in chunk], device=points.device)
+            w = lookup(self._wbuf, slots, cr, self.shape)
             if self.depth_gate_m is not None:
-                h = sample_nearest(torch.stack([r.hmap for r in chunk]), cr) * self.m_per_px
+                h = lookup(self._hbuf, slots, cr, self.shape) * self.m_per_px
                 w = w * ((moved[..., 2] - h).abs() < self.depth_gate_m)
             out.append(w)
         return torch.cat(out)

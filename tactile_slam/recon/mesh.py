@@ -1,0 +1,103 @@
+"""Triangle-mesh container, grid triangulation and PLY output (method.md 8.2)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import open3d as o3d
+import torch
+
+
+class MeshError(ValueError):
+    """An empty or malformed mesh, or an unwritable output."""
+
+
+@dataclass
+class TriMesh:
+    """A triangle mesh in metres.
+
+    Attributes:
+        vertices: ``(V, 3)`` float64 metres, in the frame named by whoever made it.
+        faces: ``(F, 3)`` int64 vertex indices, counter-clockwise seen from outside.
+        normals: ``(V, 3)`` float64 unit outward vertex normals.
+    """
+
+    vertices: torch.Tensor
+    faces: torch.Tensor
+    normals: torch.Tensor
+
+    @property
+    def n_vertices(self) -> int:
+        return int(self.vertices.shape[0])
+
+    @property
+    def n_faces(self) -> int:
+        return int(self.faces.shape[0])
+
+    def to_open3d(self) -> o3d.geometry.TriangleMesh:
+        m = o3d.geometry.TriangleMesh()
+        m.vertices = o3d.utility.Vector3dVector(self.vertices.detach().cpu().double().numpy())
+        m.triangles = o3d.utility.Vector3iVector(self.faces.detach().cpu().numpy().astype(np.int32))
+        m.vertex_normals = o3d.utility.Vector3dVector(self.normals.detach().cpu().double().numpy())
+        return m
+
+    @staticmethod
+    def from_open3d(mesh: o3d.geometry.TriangleMesh) -> "TriMesh":
+        if not mesh.has_vertex_normals():
+            mesh.compute_vertex_normals()
+        return TriMesh(
+            vertices=torch.from_numpy(np.asarray(mesh.vertices, dtype=np.float64).copy()),
+            faces=torch.from_numpy(np.asarray(mesh.triangles, dtype=np.int64).copy()),
+            normals=torch.from_numpy(np.asarray(mesh.vertex_normals, dtype=np.float64).copy()),
+        )
+
+    def save_ply(self, path: str | Path) -> Path:
+        """Binary little-endian PLY with double xyz and normals, in metres."""
+        if self.n_vertices == 0:
+            raise MeshError(f"refusing to write an empty mesh to {path}")
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if not o3d.io.write_triangle_mesh(str(path), self.to_open3d(), write_ascii=False, compressed=False,
+                                          write_vertex_normals=True, write_vertex_colors=False):
+            raise MeshError(f"could not write mesh to {path}")
+        return path
+
+
+def grid_faces(mask: torch.Tensor) -> torch.Tensor:
+    """Triangulate the pixels of a mask (method.md 8.2).
+
+    For each masked pixel (r, c): triangle (r,c)-(r+1,c)-(r,c+1) when both others are
+    masked, and (r+1,c)-(r+1,c+1)-(r,c+1) when (r+1,c+1) is masked too. With x right,
+    y down and z out of the gel, face normals point to -z, the object's outside.
+
+    Args:
+        mask: ``(H, W)`` bool.
+
+    Returns:
+        ``(F, 3)`` int64 indices into the row-major list of masked pixels.
+    """
+    h, w = mask.shape
+    index = torch.full((h + 1, w + 1), -1, dtype=torch.int64, device=mask.device)
+    index[:h, :w][mask] = torch.arange(int(mask.sum()), device=mask.device)
+    a = index[:h, :w]
+    down = index[1:h + 1, :w]
+    right = index[:h, 1:w + 1]
+    diag = index[1:h + 1, 1:w + 1]
+    upper = (a >= 0) & (down >= 0) & (right >= 0)
+    lower = upper & (diag >= 0)
+    f1 = torch.stack([a[upper], down[upper], right[upper]], dim=1)
+    f2 = torch.stack([down[lower], diag[lower], right[lower]], dim=1)
+    return torch.cat([f1, f2])
+
+
+def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
+    """Area-weighted vertex normals ``(V, 3)`` from ``(V, 3)`` vertices and ``(F, 3)`` faces
+    (zero for vertices in no face)."""
+    v = vertices
+    fn = torch.linalg.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]], dim=1)
+    acc = torch.zeros_like(v)
+    for k in range(3):
+        acc.index_add_(0, faces[:, k], fn)
+    return torch.nn.functional.normalize(acc, dim=1)
