@@ -196,6 +196,10 @@ class PoseGraphConfig:
     gnc_mu_step: float = 1.4
     gnc_max_iters: int = 100
     reinit_merged: bool = True
+    # incremental updates: first region (poses), boundary test (whitened cost), LM steps per region
+    incremental_window: int = 64
+    incremental_tol: float = 1e-2
+    incremental_max_iters: int = 10
 
 
 @dataclass

@@ -19,7 +19,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import pypose as pp
 import torch
 
 from tactile_slam.config import PoseGraphConfig
@@ -39,24 +38,24 @@ class EdgeArrays:
 
     Attributes:
         i, j: ``(E,)`` int64 node *rows* (not ids) of the two ends.
-        Z: ``(E, 7)`` SE3 LieTensor, measured ``i_T_j``.
+        Z: ``(E, 4, 4)`` float64, measured ``i_T_j``.
         sigma: ``(E, 6)`` float64 noise, [translation m x3, rotation rad x3].
         loop: ``(E,)`` bool, True for loop closures, False for odometry.
     """
 
     i: torch.Tensor
     j: torch.Tensor
-    Z: pp.LieTensor
+    Z: torch.Tensor
     sigma: torch.Tensor
     loop: torch.Tensor
 
 
 @dataclass
 class PriorArrays:
-    """Prior factors as batched tensors: rows ``(P,)``, ``Z`` ``(P, 7)``, ``sigma`` ``(P, 6)``."""
+    """Prior factors as batched tensors: rows ``(P,)``, ``Z`` ``(P, 4, 4)``, ``sigma`` ``(P, 6)``."""
 
     rows: torch.Tensor
-    Z: pp.LieTensor
+    Z: torch.Tensor
     sigma: torch.Tensor
 
 
@@ -113,10 +112,10 @@ class PoseGraph:
         self.default_sigma = sigma_vector((config.sigma_rot_rad, config.sigma_trans_m), torch.ones(6))
         self._row: dict[int, int] = {}
         self._ids = _Rows(None, torch.int64)
-        self._poses = _Rows(7, torch.float64)
+        self._poses = _Rows(16, torch.float64)
         self._ei = _Rows(None, torch.int64)
         self._ej = _Rows(None, torch.int64)
-        self._eZ = _Rows(7, torch.float64)
+        self._eZ = _Rows(16, torch.float64)
         self._esigma = _Rows(6, torch.float64)
         self._eloop = _Rows(None, torch.bool)
         self._priors: dict[int, tuple[torch.Tensor, torch.Tensor]] = {}
@@ -156,8 +155,8 @@ class PoseGraph:
     def add_nodes(self, node_ids: Sequence[int], start_T_kf: torch.Tensor) -> None:
         """Add keyframes ``node_ids`` ``(K,)`` with initial values ``start_T_kf`` ``(K, 4, 4)``."""
         node_ids = [int(k) for k in node_ids]
-        X = se3.from_matrix(start_T_kf).tensor()
-        if X.shape != (len(node_ids), 7):
+        X = se3.check_pose(start_T_kf)
+        if X.shape != (len(node_ids), 4, 4):
             raise GraphError(f"start_T_kf must be ({len(node_ids)}, 4, 4), got {tuple(start_T_kf.shape)}")
         if len(set(node_ids)) != len(node_ids) or any(k in self._row for k in node_ids):
             dup = next(k for n, k in enumerate(node_ids) if k in self._row or k in node_ids[:n])
@@ -165,29 +164,24 @@ class PoseGraph:
         for k in node_ids:
             self._row[k] = len(self._row)
         self._ids.extend(torch.tensor(node_ids, dtype=torch.int64))
-        self._poses.extend(X)
+        self._poses.extend(X.reshape(-1, 16))
 
     def pose(self, node_id: int) -> torch.Tensor:
         """Current ``start_T_kf`` ``(4, 4)`` float64 of one node."""
-        return se3.to_matrix(pp.SE3(self._poses.data[self.rows(node_id)[0]]))
+        return self._poses.data[self.rows(node_id)[0]].reshape(4, 4).clone()
 
     def poses(self, node_ids: Iterable[int] | None = None) -> torch.Tensor:
         """Current ``start_T_kf`` ``(K, 4, 4)`` float64 of ``node_ids`` (all nodes if None)."""
-        X = self.pose_tensor if node_ids is None else pp.SE3(self._poses.view()[self.rows(node_ids)])
-        return se3.to_matrix(X)
+        P = self._poses.view() if node_ids is None else self._poses.view()[self.rows(node_ids)]
+        return P.reshape(-1, 4, 4).clone()
 
-    @property
-    def pose_tensor(self) -> pp.LieTensor:
-        """All current poses ``(N, 7)`` as an SE3 LieTensor, in row order (a copy)."""
-        return pp.SE3(self._poses.view().clone())
-
-    def set_poses(self, rows: torch.Tensor, X: pp.LieTensor | torch.Tensor) -> None:
-        """Overwrite the poses at ``rows`` ``(K,)`` with SE3 values ``(K, 7)``."""
-        self._poses.data[rows] = X.tensor() if isinstance(X, pp.LieTensor) else X
+    def set_poses(self, rows: torch.Tensor, start_T_kf: torch.Tensor) -> None:
+        """Overwrite the poses at ``rows`` ``(K,)`` (graph rows, not ids) with ``(K, 4, 4)``."""
+        self._poses.data[rows] = start_T_kf.reshape(-1, 16)
 
     def set_pose(self, node_id: int, start_T_kf: torch.Tensor) -> None:
         """Overwrite one node's ``start_T_kf`` ``(4, 4)``."""
-        self.set_poses(self.rows(node_id), se3.from_matrix(start_T_kf)[None])
+        self.set_poses(self.rows(node_id), se3.check_pose(start_T_kf)[None])
 
     # ------------------------------------------------------------------ factors
     def add_prior(self, node_id: int, start_T_kf: torch.Tensor | None = None,
@@ -195,7 +189,7 @@ class PoseGraph:
         """Anchor ``node_id`` at ``start_T_kf`` ``(4, 4)`` (identity if None); replaces an old prior."""
         row = int(self.rows(node_id)[0])
         T = torch.eye(4, dtype=torch.float64) if start_T_kf is None else start_T_kf
-        self._priors[row] = (se3.from_matrix(T).tensor(), sigma_vector(sigma, self.default_sigma))
+        self._priors[row] = (se3.check_pose(T).reshape(4, 4), sigma_vector(sigma, self.default_sigma))
 
     def remove_prior(self, node_id: int) -> None:
         """Drop the prior on ``node_id``; :class:`GraphError` if it has none."""
@@ -229,31 +223,31 @@ class PoseGraph:
             raise GraphError(f"got {ri.numel()} start nodes and {rj.numel()} end nodes")
         if (ri == rj).any():
             raise GraphError(f"between factor from node {int(self.ids[ri[ri == rj][0]])} to itself")
-        Z = se3.from_matrix(i_T_j).tensor()
-        if Z.shape != (ri.numel(), 7):
+        Z = se3.check_pose(i_T_j)
+        if Z.shape != (ri.numel(), 4, 4):
             raise GraphError(f"i_T_j must be ({ri.numel()}, 4, 4), got {tuple(torch.as_tensor(i_T_j).shape)}")
         first = self._ei.n
         self._ei.extend(ri)
         self._ej.extend(rj)
-        self._eZ.extend(Z)
+        self._eZ.extend(Z.reshape(-1, 16))
         self._esigma.extend(sigma_vector(sigma, self.default_sigma).expand(ri.numel(), 6))
         self._eloop.extend(torch.full((ri.numel(),), kind == "loop"))
         return list(range(first, self._ei.n))
 
     @property
     def edges(self) -> EdgeArrays:
-        return EdgeArrays(self._ei.view(), self._ej.view(), pp.SE3(self._eZ.view()),
+        return EdgeArrays(self._ei.view(), self._ej.view(), self._eZ.view().reshape(-1, 4, 4),
                           self._esigma.view(), self._eloop.view())
 
     @property
     def priors(self) -> PriorArrays:
         rows = sorted(self._priors)
         if not rows:
-            return PriorArrays(torch.zeros(0, dtype=torch.int64), pp.identity_SE3(0, dtype=torch.float64),
+            return PriorArrays(torch.zeros(0, dtype=torch.int64), torch.zeros(0, 4, 4, dtype=torch.float64),
                                torch.zeros(0, 6, dtype=torch.float64))
         Z = torch.stack([self._priors[r][0] for r in rows])
         sigma = torch.stack([self._priors[r][1] for r in rows])
-        return PriorArrays(torch.tensor(rows, dtype=torch.int64), pp.SE3(Z), sigma)
+        return PriorArrays(torch.tensor(rows, dtype=torch.int64), Z, sigma)
 
     # ------------------------------------------------------------------ g2o
     def to_g2o(self, path: str | Path) -> Path:
@@ -266,20 +260,19 @@ class PoseGraph:
         path = Path(path)
         lines = []
         ids = self.ids.tolist()
-        for k, x in zip(ids, self._poses.view().tolist()):
+        for k, x in zip(ids, _quat_rows(self.poses())):
             lines.append("VERTEX_SE3:QUAT %d %s" % (k, _fmt(x)))
         pr = self.priors
-        for r, z, s in zip(pr.rows.tolist(), pr.Z.tensor().tolist(), pr.sigma):
+        for r, z, s in zip(pr.rows.tolist(), _quat_rows(pr.Z), pr.sigma):
             lines.append("EDGE_SE3_PRIOR %d %s %s" % (ids[r], _fmt(z), _fmt(_info_upper(s))))
         e = self.edges
         for want_loop in (False, True):
             if want_loop and bool(e.loop.any()):
                 lines.append(_LOOP_MARKER)
-            sel = torch.nonzero(e.loop == want_loop).flatten().tolist()
-            for n in sel:
+            sel = torch.nonzero(e.loop == want_loop).flatten()
+            for n, z in zip(sel.tolist(), _quat_rows(e.Z[sel])):
                 lines.append("EDGE_SE3:QUAT %d %d %s %s" % (
-                    ids[int(e.i[n])], ids[int(e.j[n])], _fmt(e.Z.tensor()[n].tolist()),
-                    _fmt(_info_upper(e.sigma[n]))))
+                    ids[int(e.i[n])], ids[int(e.j[n])], _fmt(z), _fmt(_info_upper(e.sigma[n]))))
         path.parent.mkdir(parents=True, exist_ok=True)
         path.write_text("\n".join(lines) + "\n")
         return path
@@ -326,6 +319,11 @@ class PoseGraph:
         return g
 
 
+def _quat_rows(T: torch.Tensor) -> list[list[float]]:
+    """``[x, y, z, qx, qy, qz, qw]`` rows of poses ``(K, 4, 4)``."""
+    return torch.cat([T[:, :3, 3], se3.rotmat_to_quat(T[:, :3, :3])], dim=1).tolist()
+
+
 def _fmt(values: Iterable[float]) -> str:
     return " ".join(repr(float(v)) for v in values)
 
@@ -350,5 +348,7 @@ def _matrix(tokens: Sequence[str]) -> torch.Tensor:
     q = x[3:]
     if not torch.isfinite(x).all() or q.norm() < 1e-12:
         raise GraphError("pose must be finite with a non-zero quaternion")
-    x[3:] = q / q.norm()
-    return se3.to_matrix(pp.SE3(x))
+    T = torch.eye(4, dtype=torch.float64)
+    T[:3, :3] = se3.quat_to_rotmat(q / q.norm())
+    T[:3, 3] = x[:3]
+    return T

@@ -1,12 +1,16 @@
-"""Batched SE(3) helpers for the pose graph, on top of pypose LieTensors (float64).
+"""Batched SE(3) on homogeneous matrices for the pose graph (float64, metres).
 
-Poses are stored as pypose ``SE3`` LieTensors ``(..., 7)`` = ``[tx, ty, tz, qx, qy, qz, qw]``
-(translation in metres, unit quaternion). Tangent vectors are pypose ``se3`` vectors
-``(..., 6)`` ordered **[translation, rotation]** = ``[rho, phi]``; GTSAM orders them
-[rotation, translation], so every 6-vector and 6x6 block in this package (noise sigmas,
-information matrices, Jacobians) follows the pypose/g2o order instead.
+Poses are ``(..., 4, 4)`` float64 matrices ``a_T_b``. Tangent vectors are ``(..., 6)`` ordered
+**[translation, rotation]** = ``[rho, phi]``, pypose's ``se3`` order (GTSAM orders them
+[rotation, translation]); every 6-vector and 6x6 block in this package (noise sigmas,
+information matrices, Jacobians) uses this order. Perturbations are on the right:
+``T <- T . Exp(delta)``.
 
-Perturbations are on the right: ``T <- T . Exp(delta)``.
+Exp/Log/adjoint are written in plain batched torch and tested against pypose's LieTensor
+``Exp``/``Log``/``Adj``: the solver calls them thousands of times on small batches, and each
+pypose op carries about 0.1 ms of Python dispatch (an autograd ``Function`` binding its
+signature), which dominated incremental updates. pypose stays the reference (its
+``optim.LM`` checks the solver) and the exchange type (:func:`to_pypose`, :func:`from_pypose`).
 """
 
 from __future__ import annotations
@@ -26,11 +30,11 @@ def skew(v: torch.Tensor) -> torch.Tensor:
     return torch.stack([o, -z, y, z, o, -x, -y, x, o], dim=-1).reshape(v.shape[:-1] + (3, 3))
 
 
-def from_matrix(T: torch.Tensor, check: bool = True) -> pp.LieTensor:
-    """SE3 LieTensor ``(..., 7)`` from homogeneous matrices ``(..., 4, 4)`` (float64).
+def check_pose(T: torch.Tensor) -> torch.Tensor:
+    """Validate homogeneous matrices ``(..., 4, 4)`` and return them as float64.
 
     Raises :class:`PoseError` when the input is not ``(..., 4, 4)``, is not finite, or is
-    not a rigid transform (rotation part not orthonormal within 1e-6, last row not
+    not a rigid transform (rotation not orthonormal within 1e-6 or a reflection, last row not
     ``[0, 0, 0, 1]``).
     """
     T = torch.as_tensor(T, dtype=torch.float64)
@@ -38,7 +42,7 @@ def from_matrix(T: torch.Tensor, check: bool = True) -> pp.LieTensor:
         raise PoseError(f"pose must have shape (..., 4, 4), got {tuple(T.shape)}")
     if not torch.isfinite(T).all():
         raise PoseError("pose contains NaN or inf")
-    if check and T.numel():
+    if T.numel():
         R = T[..., :3, :3]
         eye = torch.eye(3, dtype=T.dtype, device=T.device)
         bottom = torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=T.dtype, device=T.device)
@@ -48,8 +52,68 @@ def from_matrix(T: torch.Tensor, check: bool = True) -> pp.LieTensor:
             raise PoseError("pose rotation is a reflection (det < 0)")
         if (T[..., 3, :] - bottom).abs().amax().item() > 1e-9:
             raise PoseError("pose last row must be [0, 0, 0, 1]")
-    x = torch.cat([T[..., :3, 3], rotmat_to_quat(T[..., :3, :3])], dim=-1)
-    return pp.SE3(x)
+    return T
+
+
+def to_pypose(T: torch.Tensor) -> pp.LieTensor:
+    """pypose SE3 LieTensor ``(..., 7)`` = ``[t, qx, qy, qz, qw]`` of matrices ``(..., 4, 4)``."""
+    return pp.SE3(torch.cat([T[..., :3, 3], rotmat_to_quat(T[..., :3, :3])], dim=-1))
+
+
+def from_pypose(X: pp.LieTensor) -> torch.Tensor:
+    """Homogeneous matrices ``(..., 4, 4)`` of pypose SE3 LieTensors ``(..., 7)``."""
+    x = X.tensor() if isinstance(X, pp.LieTensor) else X
+    T = torch.zeros(x.shape[:-1] + (4, 4), dtype=x.dtype, device=x.device)
+    T[..., :3, :3] = quat_to_rotmat(x[..., 3:])
+    T[..., :3, 3] = x[..., :3]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def inverse(T: torch.Tensor) -> torch.Tensor:
+    """Inverse rigid transforms ``(..., 4, 4)``."""
+    Rt = T[..., :3, :3].transpose(-1, -2)
+    out = torch.zeros_like(T)
+    out[..., :3, :3] = Rt
+    out[..., :3, 3] = -(Rt @ T[..., :3, 3:]).squeeze(-1)
+    out[..., 3, 3] = 1.0
+    return out
+
+
+def exp(xi: torch.Tensor) -> torch.Tensor:
+    """``Exp`` of se3 vectors ``(..., 6)`` [rho, phi] as matrices ``(..., 4, 4)``."""
+    rho, phi = xi[..., :3], xi[..., 3:]
+    K = skew(phi)
+    theta2 = (phi * phi).sum(-1)[..., None, None]
+    theta = theta2.sqrt()
+    small = theta < 1e-4
+    s = torch.where(small, torch.ones_like(theta), theta)
+    a = torch.where(small, 1 - theta2 / 6, torch.sin(s) / s)
+    b = torch.where(small, 0.5 - theta2 / 24, (1 - torch.cos(s)) / (s * s))
+    c = torch.where(small, 1 / 6 - theta2 / 120, (s - torch.sin(s)) / (s * s * s))
+    KK = K @ K
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
+    T = torch.zeros(xi.shape[:-1] + (4, 4), dtype=xi.dtype, device=xi.device)
+    T[..., :3, :3] = eye + a * K + b * KK
+    T[..., :3, 3] = ((eye + b * K + c * KK) @ rho[..., None]).squeeze(-1)
+    T[..., 3, 3] = 1.0
+    return T
+
+
+def log(T: torch.Tensor) -> torch.Tensor:
+    """``Log`` of rigid transforms ``(..., 4, 4)`` as se3 vectors ``(..., 6)`` [rho, phi].
+
+    The rotation angle comes from the quaternion (``2 atan2(|v|, w)``), accurate at every
+    angle up to pi.
+    """
+    q = rotmat_to_quat(T[..., :3, :3])
+    v, w = q[..., :3], q[..., 3:]
+    n = v.norm(dim=-1, keepdim=True)
+    small = n < 1e-8
+    scale = torch.where(small, 2.0 / w, 2.0 * torch.atan2(n, w) / torch.where(small, torch.ones_like(n), n))
+    phi = v * scale
+    rho = (_so3_left_jacobian_inv(phi) @ T[..., :3, 3:]).squeeze(-1)
+    return torch.cat([rho, phi], dim=-1)
 
 
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
@@ -72,17 +136,6 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     return torch.where(q[..., 3:] < 0, -q, q)
 
 
-def to_matrix(X: pp.LieTensor) -> torch.Tensor:
-    """Homogeneous matrices ``(..., 4, 4)`` of SE3 LieTensors ``(..., 7)``."""
-    X = pp.SE3(X)
-    R = quat_to_rotmat(X.tensor()[..., 3:])
-    T = torch.zeros(X.shape[:-1] + (4, 4), dtype=X.dtype, device=X.device)
-    T[..., :3, :3] = R
-    T[..., :3, 3] = X.tensor()[..., :3]
-    T[..., 3, 3] = 1.0
-    return T
-
-
 def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     """Rotation matrices ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` = ``[x, y, z, w]``."""
     x, y, z, w = q.unbind(-1)
@@ -93,14 +146,13 @@ def quat_to_rotmat(q: torch.Tensor) -> torch.Tensor:
     ], dim=-1).reshape(q.shape[:-1] + (3, 3))
 
 
-def adjoint(X: pp.LieTensor) -> torch.Tensor:
-    """Adjoint matrices ``(..., 6, 6)`` of SE3 poses ``(..., 7)``, tangent [rho, phi].
+def adjoint(T: torch.Tensor) -> torch.Tensor:
+    """Adjoint matrices ``(..., 6, 6)`` of poses ``(..., 4, 4)``, tangent [rho, phi].
 
-    ``Exp(Ad(X) xi) = X . Exp(xi) . X^-1``; ``Ad = [[R, [t]x R], [0, R]]``.
+    ``Exp(Ad(T) xi) = T . Exp(xi) . T^-1``; ``Ad = [[R, [t]x R], [0, R]]``.
     """
-    t = X.tensor()[..., :3]
-    R = quat_to_rotmat(X.tensor()[..., 3:])
-    A = torch.zeros(X.shape[:-1] + (6, 6), dtype=X.dtype, device=X.device)
+    R, t = T[..., :3, :3], T[..., :3, 3]
+    A = torch.zeros(T.shape[:-2] + (6, 6), dtype=T.dtype, device=T.device)
     A[..., :3, :3] = R
     A[..., 3:, 3:] = R
     A[..., :3, 3:] = skew(t) @ R
@@ -152,15 +204,15 @@ def right_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def between_error(Z: pp.LieTensor, Ti: pp.LieTensor, Tj: pp.LieTensor) -> torch.Tensor:
+def between_error(Z: torch.Tensor, Ti: torch.Tensor, Tj: torch.Tensor) -> torch.Tensor:
     """Between-factor errors ``e = Log(Z^-1 . Ti^-1 . Tj)`` ``(..., 6)`` [rho, phi].
 
-    ``Z`` is the measured ``i_T_j``; ``Ti``, ``Tj`` are ``start_T_i``, ``start_T_j``.
+    ``Z`` ``(..., 4, 4)`` is the measured ``i_T_j``; ``Ti``, ``Tj`` are ``start_T_i``, ``start_T_j``.
     """
-    return (Z.Inv() * Ti.Inv() * Tj).Log().tensor()
+    return log(inverse(Z) @ inverse(Ti) @ Tj)
 
 
-def between_jacobians(Z: pp.LieTensor, Ti: pp.LieTensor, Tj: pp.LieTensor
+def between_jacobians(Z: torch.Tensor, Ti: torch.Tensor, Tj: torch.Tensor
                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Errors ``(E, 6)`` and their Jacobians ``(E, 6, 6)`` w.r.t. right perturbations of Ti, Tj.
 
@@ -169,16 +221,16 @@ def between_jacobians(Z: pp.LieTensor, Ti: pp.LieTensor, Tj: pp.LieTensor
     """
     e = between_error(Z, Ti, Tj)
     Jr_inv = right_jacobian_inv(e)
-    Ji = -Jr_inv @ adjoint(Tj.Inv() * Ti)
+    Ji = -Jr_inv @ adjoint(inverse(Tj) @ Ti)
     return e, Ji, Jr_inv
 
 
-def prior_jacobian(Z: pp.LieTensor, Ti: pp.LieTensor) -> tuple[torch.Tensor, torch.Tensor]:
+def prior_jacobian(Z: torch.Tensor, Ti: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """Prior errors ``e = Log(Z^-1 Ti)`` ``(P, 6)`` and Jacobians ``Jr^-1(e)`` ``(P, 6, 6)``."""
-    e = (Z.Inv() * Ti).Log().tensor()
+    e = log(inverse(Z) @ Ti)
     return e, right_jacobian_inv(e)
 
 
-def retract(X: pp.LieTensor, delta: torch.Tensor) -> pp.LieTensor:
-    """Right retraction ``X . Exp(delta)``, ``X (..., 7)``, ``delta (..., 6)`` [rho, phi]."""
-    return X * pp.se3(delta).Exp()
+def retract(T: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
+    """Right retraction ``T . Exp(delta)``, ``T (..., 4, 4)``, ``delta (..., 6)`` [rho, phi]."""
+    return T @ exp(delta)

@@ -22,7 +22,6 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import pypose as pp
 import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import torch
@@ -85,15 +84,15 @@ class _Problem:
         self.edge_idx = torch.nonzero(keep).flatten()
         self.ei, self.ej = e.i[keep], e.j[keep]
         self.li, self.lj = li[keep], lj[keep]
-        self.Z = pp.SE3(e.Z.tensor()[keep])
+        self.Z = e.Z[keep]
         self.sigma = e.sigma[keep]
         self.loop = e.loop[keep]
         pr = graph.priors
         pkeep = local[pr.rows] >= 0
         self.prow, self.plocal = pr.rows[pkeep], local[pr.rows[pkeep]]
-        self.pZ, self.psigma = pp.SE3(pr.Z.tensor()[pkeep]), pr.sigma[pkeep]
+        self.pZ, self.psigma = pr.Z[pkeep], pr.sigma[pkeep]
         self._check_anchored()
-        self._build_pattern(graph.pose_tensor.tensor()[var_rows, :3].numpy())
+        self._build_pattern(graph.poses()[var_rows, :3, 3].numpy())
 
     def _check_anchored(self) -> None:
         """Every connected group of variables must contain a prior or touch a fixed pose."""
@@ -124,17 +123,25 @@ class _Problem:
         m = int(both.sum())
         self.slot_ij_both, self.slot_ji_both = inv[n:n + m], inv[n + m:]
         self.both = both
-        self.chol = BlockCholesky(n, (keys // n).numpy(), (keys % n).numpy(), coords)
+        self._keys, self._coords = keys, coords
+        self._chol: BlockCholesky | None = None
+
+    @property
+    def chol(self) -> BlockCholesky:
+        """The symbolic factorisation, built on first use."""
+        if self._chol is None:
+            n = self.n
+            self._chol = BlockCholesky(n, (self._keys // n).numpy(), (self._keys % n).numpy(), self._coords)
+        return self._chol
 
     # -------------------------------------------------------------- evaluation
-    def residuals(self, X: pp.LieTensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Squared whitened norms of the edges ``(E',)`` and priors ``(P',)`` at poses ``X`` ``(N, 7)``."""
+    def residuals(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Squared whitened norms of the edges ``(E',)`` and priors ``(P',)`` at poses ``X`` ``(N, 4, 4)``."""
         e = se3.between_error(self.Z, X[self.ei], X[self.ej]) / self.sigma
-        p = se3.between_error(self.pZ, pp.identity_SE3(self.prow.numel(), dtype=torch.float64),
-                              X[self.prow]) / self.psigma
+        p = se3.log(se3.inverse(self.pZ) @ X[self.prow]) / self.psigma
         return (e * e).sum(-1), (p * p).sum(-1)
 
-    def linearize(self, X: pp.LieTensor, w: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    def linearize(self, X: torch.Tensor, w: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
         """Blocks ``(S, 6, 6)`` of ``J^T W J`` and the gradient ``J^T W e`` ``(6n,)`` at ``X``.
 
         ``w`` ``(E',)`` are per-edge weights (IRLS or GNC); priors have weight 1.
@@ -172,13 +179,13 @@ class _Problem:
             return None
         return torch.from_numpy(self.chol.solve(-g)).reshape(self.n, 6)
 
-    def retract(self, X: pp.LieTensor, delta: torch.Tensor) -> pp.LieTensor:
+    def retract(self, X: torch.Tensor, delta: torch.Tensor) -> torch.Tensor:
         Y = X.clone()
         Y[self.var_rows] = se3.retract(X[self.var_rows], delta)
-        return pp.SE3(Y)
+        return Y
 
 
-def _weights_and_cost(prob: _Problem, X: pp.LieTensor, kernel: str, k2: float,
+def _weights_and_cost(prob: _Problem, X: torch.Tensor, kernel: str, k2: float,
                       fixed_w: torch.Tensor | None) -> tuple[torch.Tensor, float]:
     """Per-edge weights ``(E',)`` for linearisation and the total cost at ``X``."""
     s_e, s_p = prob.residuals(X)
@@ -189,9 +196,9 @@ def _weights_and_cost(prob: _Problem, X: pp.LieTensor, kernel: str, k2: float,
     return w, 0.5 * float(rho.sum() + s_p.sum())
 
 
-def _levenberg_marquardt(prob: _Problem, X: pp.LieTensor, config: PoseGraphConfig, kernel: str,
+def _levenberg_marquardt(prob: _Problem, X: torch.Tensor, config: PoseGraphConfig, kernel: str,
                          fixed_w: torch.Tensor | None, max_iters: int
-                         ) -> tuple[pp.LieTensor, int, float, float, bool]:
+                         ) -> tuple[torch.Tensor, int, float, float, bool]:
     """GTSAM-style LM; returns (poses, accepted steps, initial cost, final cost, converged)."""
     k2 = config.robust_chi2
     w, cost = _weights_and_cost(prob, X, kernel, k2, fixed_w)
@@ -246,8 +253,8 @@ def solve(graph: PoseGraph, config: PoseGraphConfig | None = None,
         return report
     prob = _Problem(graph, torch.unique(rows))
     report.n_variables, report.n_factors = prob.n, prob.edge_idx.numel() + prob.prow.numel()
-    X = graph.pose_tensor
-    if not torch.isfinite(X.tensor()).all():
+    X = graph.poses()
+    if not torch.isfinite(X).all():
         raise SolverError("initial poses contain NaN or inf")
 
     if config.robust == "gnc":
@@ -263,8 +270,8 @@ def solve(graph: PoseGraph, config: PoseGraphConfig | None = None,
     return report
 
 
-def _gnc(prob: _Problem, X: pp.LieTensor, config: PoseGraphConfig, max_iters: int
-         ) -> tuple[pp.LieTensor, torch.Tensor, int, float, float, bool]:
+def _gnc(prob: _Problem, X: torch.Tensor, config: PoseGraphConfig, max_iters: int
+         ) -> tuple[torch.Tensor, torch.Tensor, int, float, float, bool]:
     """Graduated non-convexity with TLS on loop factors (odometry and priors are inliers).
 
     Starts from the least-squares solution, then alternates closed-form weight updates with

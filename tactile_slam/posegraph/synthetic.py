@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import pypose as pp
 import torch
 from scipy.spatial import cKDTree
 
@@ -93,7 +92,7 @@ def _greedy_coverage(centres: np.ndarray, spacing: float) -> np.ndarray:
 def _noisy(T: torch.Tensor, sigma: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
     """``T . Exp(n)``, ``n ~ N(0, diag(sigma^2))`` [translation, rotation]; T ``(K, 4, 4)``."""
     n = torch.randn(T.shape[0], 6, dtype=torch.float64, generator=gen) * sigma
-    return se3.to_matrix(se3.from_matrix(T) * pp.se3(n).Exp())
+    return T @ se3.exp(n)
 
 
 def synthetic_scan(n_keyframes: int, n_loops: int, n_sessions: int = 1, seed: int = 0,

@@ -1,0 +1,149 @@
+"""Incremental pose-graph updates after each keyframe (method.md section 7.2, [Rec]).
+
+GelSLAM re-solves the whole graph from scratch after every keyframe. Here, after new nodes
+and factors are added to a :class:`PoseGraph`, :meth:`IncrementalSolver.update`:
+
+1. **skips** the solve when the new factors are already satisfied by the current estimate
+   (a keyframe whose only factor is its odometry, initialised by chaining it, leaves the
+   optimum unchanged: its residual is exactly zero) and no prior was removed;
+2. otherwise solves a **local region** first: the ``window`` poses nearest (in graph hops) to
+   the new factors' ends, warm-started, with every other pose held fixed;
+3. **checks the boundary**: the cost decrease that moving the fixed poses next to the region
+   would still bring, predicted from their gradient and block-diagonal Hessian. If it
+   exceeds ``tol`` the region grows fourfold and is re-solved, up to the whole connected group.
+
+:meth:`IncrementalSolver.finalize` runs a full warm-started solve (e.g. at the end of a scan).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+import scipy.sparse.csgraph as csgraph
+import torch
+
+from tactile_slam.config import PoseGraphConfig
+from tactile_slam.posegraph import se3
+from tactile_slam.posegraph.graph import PoseGraph
+from tactile_slam.posegraph.solver import SolveReport, _Problem, solve
+
+
+@dataclass
+class UpdateReport:
+    """What one :meth:`IncrementalSolver.update` did.
+
+    Attributes:
+        skipped: the new factors were already satisfied; nothing was solved.
+        new_cost: whitened cost ``0.5 sum |e/sigma|^2`` of the new factors before the update.
+        regions: number of poses in each region solved, in order (the last one sufficed).
+        iterations: accepted LM steps over all regions.
+        time_s: wall-clock seconds.
+    """
+
+    skipped: bool = True
+    new_cost: float = 0.0
+    regions: list[int] = field(default_factory=list)
+    iterations: int = 0
+    time_s: float = 0.0
+
+
+class IncrementalSolver:
+    """Keeps ``graph`` near its least-squares optimum as keyframes arrive.
+
+    Args:
+        graph: the pose graph; nodes and factors are added to it by the caller between calls
+            to :meth:`update`. Its poses are updated in place.
+        config: solver settings; ``incremental_window`` (poses in the first region),
+            ``incremental_tol`` (boundary test, whitened cost units) and
+            ``incremental_max_iters`` (LM steps per region) drive the local solves.
+    """
+
+    def __init__(self, graph: PoseGraph, config: PoseGraphConfig | None = None) -> None:
+        self.graph = graph
+        self.config = config or PoseGraphConfig()
+        self._nodes_seen = 0
+        self._edges_seen = 0
+        self._priors_seen: set[int] = set()
+
+    def update(self) -> UpdateReport:
+        """Bring the estimate up to date with the factors added since the last call."""
+        t0 = time.perf_counter()
+        g, cfg = self.graph, self.config
+        report = UpdateReport()
+        e = g.edges
+        new_edges = torch.arange(self._edges_seen, g.num_edges)
+        priors = g.priors
+        prior_rows = set(priors.rows.tolist())
+        added_priors = sorted(prior_rows - self._priors_seen)
+        removed_priors = sorted(self._priors_seen - prior_rows)
+        seeds = torch.cat([e.i[new_edges], e.j[new_edges], torch.arange(self._nodes_seen, g.num_nodes),
+                           torch.tensor(added_priors + removed_priors, dtype=torch.int64)]).unique()
+        self._nodes_seen, self._edges_seen, self._priors_seen = g.num_nodes, g.num_edges, prior_rows
+        if seeds.numel() == 0:
+            report.time_s = time.perf_counter() - t0
+            return report
+
+        report.new_cost = _new_factor_cost(g, new_edges, torch.tensor(added_priors, dtype=torch.int64))
+        if report.new_cost <= cfg.abs_tol and not removed_priors:
+            report.time_s = time.perf_counter() - t0
+            return report
+        report.skipped = False
+
+        dist = _hops_from(g, seeds)
+        reachable = np.isfinite(dist)
+        levels = np.sort(dist[reachable])
+        size = cfg.incremental_window
+        while True:
+            radius = levels[min(size, levels.size) - 1]
+            rows = torch.from_numpy(np.nonzero(dist <= radius)[0])
+            rep = solve(g, cfg, rows=rows, max_iters=cfg.incremental_max_iters)
+            report.regions.append(rows.numel())
+            report.iterations += rep.iterations
+            if rows.numel() == levels.size:
+                break
+            boundary = torch.from_numpy(np.nonzero(dist == radius + 1)[0])
+            if boundary.numel() == 0 or _boundary_decrease(g, boundary) <= cfg.incremental_tol:
+                break
+            size = 4 * rows.numel()
+        report.time_s = time.perf_counter() - t0
+        return report
+
+    def finalize(self) -> SolveReport:
+        """Full warm-started solve of every pose (e.g. at the end of a scan)."""
+        self.update()
+        return solve(self.graph, self.config)
+
+
+def _new_factor_cost(g: PoseGraph, new_edges: torch.Tensor, new_prior_rows: torch.Tensor) -> float:
+    """Whitened cost ``0.5 sum |e/sigma|^2`` of the given edges and of the priors on the given rows."""
+    X = g.poses()
+    e = g.edges
+    r = se3.between_error(e.Z[new_edges], X[e.i[new_edges]], X[e.j[new_edges]]) / e.sigma[new_edges]
+    cost = 0.5 * float((r * r).sum())
+    pr = g.priors
+    sel = torch.isin(pr.rows, new_prior_rows)
+    if sel.any():
+        p = se3.log(se3.inverse(pr.Z[sel]) @ X[pr.rows[sel]]) / pr.sigma[sel]
+        cost += 0.5 * float((p * p).sum())
+    return cost
+
+
+def _hops_from(g: PoseGraph, seeds: torch.Tensor) -> np.ndarray:
+    """``(N,)`` graph distance in hops from the nearest seed (``inf`` if unreachable)."""
+    e = g.edges
+    n = g.num_nodes
+    adj = sp.coo_matrix((np.ones(e.i.numel()), (e.i.numpy(), e.j.numpy())), shape=(n, n)).tocsr()
+    return csgraph.dijkstra(adj, directed=False, indices=seeds.numpy(), unweighted=True, min_only=True)
+
+
+def _boundary_decrease(g: PoseGraph, boundary: torch.Tensor) -> float:
+    """Predicted cost decrease from moving each ``boundary`` pose alone: ``0.5 g^T D^-1 g``."""
+    prob = _Problem(g, boundary)
+    w = torch.ones(prob.edge_idx.numel(), dtype=torch.float64)
+    blocks, grad = prob.linearize(g.poses(), w)
+    D = torch.from_numpy(blocks[prob.slot_diag.numpy()])
+    gr = torch.from_numpy(grad).reshape(-1, 6, 1)
+    return 0.5 * float((gr * torch.linalg.solve(D, gr)).sum())
