@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import importlib
 
-BENCHMARKS = ("geometry", "io")
+BENCHMARKS = ("geometry", "io", "render")
 
 
 def register(sub) -> None:
