@@ -65,14 +65,15 @@ def sobel_at(maps: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     c = (w - 1) - ((w - 1) - c.abs()).abs()
     flat = (r * w + c).reshape(b, -1)  # (B, K*25), row offset major
     patch = maps.reshape(b, h * w, ch).gather(1, flat[..., None].expand(-1, -1, ch))
-    patch = patch.reshape(b, idx.shape[1], 5, 5, ch)
     smooth = torch.tensor(_SOBEL_SMOOTH, dtype=maps.dtype, device=dev)
     deriv = torch.tensor(_SOBEL_DERIV, dtype=maps.dtype, device=dev)
-    kx = torch.outer(smooth, deriv) / _SOBEL_GAIN  # rows smooth, columns differentiate
-    ky = torch.outer(deriv, smooth) / _SOBEL_GAIN
-    dx = torch.einsum("bkijc,ij->bkc", patch, kx)
-    dy = torch.einsum("bkijc,ij->bkc", patch, ky)
-    return torch.stack([dx, dy], dim=-1)
+    kx = torch.outer(smooth, deriv).reshape(25) / _SOBEL_GAIN  # rows smooth, columns differentiate
+    ky = torch.outer(deriv, smooth).reshape(25) / _SOBEL_GAIN
+    # one GEMM: (B*K, 25*C) patches times a (25*C, C*2) block kernel
+    eye = torch.eye(ch, dtype=maps.dtype, device=dev)
+    block = torch.stack([kx, ky], dim=1)[:, None, None, :] * eye[None, :, :, None]  # (25, C, C, 2)
+    out = patch.reshape(-1, 25 * ch) @ block.reshape(25 * ch, ch * 2)
+    return out.reshape(b, idx.shape[1], ch, 2)
 
 
 def jacobian_analytic(points: torch.Tensor, normals: torch.Tensor, dn: torch.Tensor) -> torch.Tensor:
@@ -87,17 +88,17 @@ def jacobian_analytic(points: torch.Tensor, normals: torch.Tensor, dn: torch.Ten
         ``(..., 3, 5)`` d residual / d (wx, wy, wz, tx, ty).
     """
     px, py, pz = points.unbind(-1)
-    zero, one = torch.zeros_like(px), torch.ones_like(px)
-    jw = torch.stack(
-        [torch.stack([zero, pz, -py, one, zero], -1), torch.stack([-pz, zero, px, zero, one], -1)], dim=-2
-    )  # (..., 2, 5)
+    zero = torch.zeros_like(px)
+    dx, dy = dn[..., 0:1], dn[..., 1:2]  # (..., 3, 1)
+    # D Jw with Jw rows x: [0, Pz, -Py, 1, 0] and y: [-Pz, 0, Px, 0, 1], elementwise
+    rot_x = torch.stack([zero, pz, -py], -1).unsqueeze(-2)  # (..., 1, 3)
+    rot_y = torch.stack([-pz, zero, px], -1).unsqueeze(-2)
     nx, ny, nz = normals.unbind(-1)
     skew = torch.stack(
         [torch.stack([zero, -nz, ny], -1), torch.stack([nz, zero, -nx], -1), torch.stack([-ny, nx, zero], -1)],
         dim=-2,
     )  # [n]x, (..., 3, 3)
-    rot = torch.cat([skew, torch.zeros_like(skew[..., :2])], dim=-1)
-    return dn @ jw + rot
+    return torch.cat([dx * rot_x + dy * rot_y + skew, dx, dy], dim=-1)
 
 
 def _linearised_residual(delta: torch.Tensor, point: torch.Tensor, normal: torch.Tensor, dn: torch.Tensor):

@@ -123,7 +123,7 @@ def _level(points, normals, dn, valid, factor, jacobian) -> Level:
     b = points.shape[0]
     jac = JACOBIANS[jacobian](points.double(), normals.double(), dn.double())
     jac = jac * valid[..., None, None]  # (B, K, 3, 5)
-    jtj = (jac.unsqueeze(-1) * jac.unsqueeze(-2)).sum(2).reshape(b, -1, 25)
+    jtj = torch.einsum("bkci,bkcj->bkij", jac, jac).reshape(b, -1, 25)
     rows = jac.transpose(1, 2).reshape(b, -1, 5)
     return Level(normals.transpose(1, 2).contiguous(), rows, jtj, factor)
 

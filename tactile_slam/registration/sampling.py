@@ -26,12 +26,13 @@ def mask_to_indices(mask: torch.Tensor, k: int | None = None) -> tuple[torch.Ten
     count = mask.sum(dim=1)
     if k is None:
         k = max(int(count.max()) if b else 0, 1)
-    pos = mask.cumsum(dim=1) - 1
-    slot = torch.where(mask & (pos < k), pos, torch.full_like(pos, k))
-    idx = torch.zeros((b, k + 1), dtype=torch.int64, device=mask.device)
-    idx.scatter_(1, slot, torch.arange(n, device=mask.device).expand(b, n))
+    rows, cols = mask.nonzero(as_tuple=True)  # row-major order
+    pos = torch.arange(len(rows), device=mask.device) - (count.cumsum(0) - count)[rows]
+    keep = pos < k
+    idx = torch.zeros((b, k), dtype=torch.int64, device=mask.device)
+    idx[rows[keep], pos[keep]] = cols[keep]
     valid = torch.arange(k, device=mask.device)[None, :] < count.clamp(max=k)[:, None]
-    return torch.where(valid, idx[:, :k], torch.zeros_like(idx[:, :k])), valid
+    return idx, valid
 
 
 def top_k_mask(score: torch.Tensor, k: int) -> torch.Tensor:
@@ -47,7 +48,9 @@ def top_k_mask(score: torch.Tensor, k: int) -> torch.Tensor:
     above = score > kth
     tie = score == kth
     need = k - above.sum(dim=1, keepdim=True)
-    chosen = above | (tie & (tie.cumsum(dim=1) <= need))
+    if bool((tie.sum(dim=1, keepdim=True) > need).any()):  # keep the first ties only
+        tie = tie & (tie.cumsum(dim=1) <= need)
+    chosen = above | tie
     return torch.where(kth >= 0, chosen, score >= 0)
 
 

@@ -236,3 +236,14 @@ class TestBadInput:
             register(ref, tars[:1], None, NormalFlowConfig(jacobian="numeric"))
         with pytest.raises(ValueError, match="selection"):
             register(ref, tars[:1], None, NormalFlowConfig(selection="best"))
+
+
+def test_coarse_level(scene):
+    """A 4x4 block-averaged level first: same accuracy; factors must divide the image."""
+    ref, tars, truth, init = scene
+    pick = [NAMES.index("t1mm"), NAMES.index("rz-10"), NAMES.index("tilt15_combo")]
+    res = register(ref, tars[pick], init[pick], NormalFlowConfig(coarse_factors=(4,)))
+    rot, trans = pose_error(res.tar_T_ref, truth[pick])
+    assert (rot < 0.1).all() and (trans < 0.01).all() and bool(res.ok.all()), (rot, trans)
+    with pytest.raises(RegistrationError, match="coarse_factors"):
+        register(ref, tars[:1], None, NormalFlowConfig(coarse_factors=(7,)))
