@@ -91,7 +91,7 @@ def run_training(
         "train_seconds": result.seconds,
         "labels": [[lb.reldir, lb.cx, lb.cy, lb.radius, lb.reliable] for lb in labels],
         "metrics": metrics,
-        "torch": torch.__version__,
+        "torch": str(torch.__version__),
     }
     save_model(out / "model.pt", model.cpu(), meta)
     write_training_report(out, result, cfg, {"metrics": metrics})

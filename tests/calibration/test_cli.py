@@ -1,0 +1,49 @@
+import json
+
+from tactile_slam.calibration.labels import read_labels
+from tactile_slam.calibration.model import load_model
+from tactile_slam.cli.main import main
+
+
+def test_label_then_train_then_evaluate(synthetic_calib, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["calibrate", "label", str(synthetic_calib), "--out", str(out)]) == 0
+    labels = read_labels(out / "labels.csv")
+    assert len(labels) == 6 and (out / "overlays" / "overview.png").exists()
+    assert main(["calibrate", "train", str(synthetic_calib), "--out", str(out / "m"), "--labels",
+                 str(out / "labels.csv"), "--epochs", "2", "--hidden", "8,8", "--colour-model"]) == 0
+    for name in ("model.pt", "training_curve.png", "training.json", "evaluation.json", "colour_model.pt"):
+        assert (out / "m" / name).exists(), name
+    model, meta = load_model(out / "m" / "model.pt")
+    assert model.hidden == (8, 8)
+    assert meta["sensor"] == "GelSight Mini" and meta["image_size"] == [240, 320] and meta["seed"] == 0
+    assert len(meta["data_fingerprint"]) == 16 and set(meta["split"]) == {"train", "test"}
+    assert "heldout_angle_mae_rad" in meta["metrics"]
+    js = tmp_path / "ev.json"
+    assert main(["calibrate", "evaluate", str(synthetic_calib), "--model", str(out / "m" / "model.pt"),
+                 "--json", str(js)]) == 0
+    doc = json.loads(js.read_text())
+    assert doc["presses"] == "the model's held-out presses"
+    assert main(["calibrate", "evaluate", str(synthetic_calib), "--model", str(out / "m" / "model.pt"),
+                 "--presses", "all", "--json", str(js)]) == 0
+    assert json.loads(js.read_text())["model.pt"]["n_presses"] == 6
+
+
+def test_evaluate_reference_on_real_data(mini_data, tmp_path):
+    js = tmp_path / "ref.json"
+    ref = mini_data / "reference_model" / "nnmodel.pth"
+    rc = main(["calibrate", "evaluate", str(mini_data / "calibration"), "--model", str(ref), "--json", str(js)])
+    assert rc == 0
+    doc = json.loads(js.read_text())
+    assert doc["presses"] == "all presses" and doc["nnmodel.pth"]["angle_mae_rad"] < 0.06
+
+
+def test_bad_folder_is_a_clear_error(tmp_path, capsys):
+    assert main(["calibrate", "label", str(tmp_path)]) == 2
+    assert "catalog not found" in capsys.readouterr().err
+
+
+def test_heldout_needs_matching_data(synthetic_calib, mini_data, capsys):
+    ref = mini_data / "reference_model" / "nnmodel.pth"
+    assert main(["calibrate", "evaluate", str(synthetic_calib), "--model", str(ref), "--presses", "heldout"]) == 2
+    assert "not trained on" in capsys.readouterr().err
