@@ -84,7 +84,7 @@ def poisson_mesh(
 
     Returns:
         the mesh in metres (same frame as the points) and statistics (depth, counts,
-        whether Open3D finds it watertight).
+        whether it is closed: edge- and vertex-manifold without boundary edges).
     """
     if points.shape[0] < 10:
         raise ReconError(f"Poisson meshing needs at least 10 oriented points, got {points.shape[0]}")
@@ -105,11 +105,10 @@ def poisson_mesh(
         dist, _ = cKDTree(p_mm.cpu().numpy()).query(np.asarray(mesh.vertices), k=1)
         drop |= dist > config.trim_distance_mm
         mesh.remove_vertices_by_mask(drop)
-    mesh.merge_close_vertices(1e-3)  # marching-cubes slivers (1 um) break manifold checks
-    mesh = _largest_component(mesh)
+    mesh.merge_close_vertices(1e-3)  # marching-cubes slivers (1 um) -> degenerate faces
     mesh.remove_degenerate_triangles()
     mesh.remove_duplicated_triangles()
-    mesh.remove_duplicated_vertices()
+    mesh = _largest_component(mesh)
     mesh.remove_unreferenced_vertices()
     if len(mesh.triangles) == 0:
         raise ReconError("Poisson meshing left no triangles")
@@ -120,7 +119,7 @@ def poisson_mesh(
         "poisson_points": int(p_mm.shape[0]),
         "vertices": len(mesh.vertices),
         "faces": len(mesh.triangles),
-        "watertight": bool(mesh.is_watertight()),
+        "closed": bool(mesh.is_edge_manifold(allow_boundary_edges=False) and mesh.is_vertex_manifold()),
     }
     return TriMesh.from_open3d(mesh), stats
 
