@@ -10,10 +10,11 @@ COARSE = 0.4  # mm; the topology and sizes do not depend on the resolution
 def closed_consistent(mesh) -> bool:
     """Every directed edge appears once and its reverse once: a closed, consistently
     wound surface (open3d's is_watertight adds an O(n^2)-ish self-intersection test)."""
-    tri = np.asarray(mesh.triangles)
+    tri = np.asarray(mesh.triangles).astype(np.int64)
     e = np.concatenate([tri[:, [0, 1]], tri[:, [1, 2]], tri[:, [2, 0]]])
-    directed = {tuple(x) for x in e.tolist()}
-    return len(directed) == len(e) and all((b, a) in directed for a, b in directed)
+    n = len(mesh.vertices)
+    key, rev = e[:, 0] * n + e[:, 1], e[:, 1] * n + e[:, 0]
+    return len(np.unique(key)) == len(key) and bool(np.isin(rev, key).all())
 
 
 @pytest.mark.parametrize("name", sorted(OBJECTS))
