@@ -1,0 +1,132 @@
+"""End-to-end runs of the offline pipeline on short simulated episodes (gradient level)."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from tactile_slam.cli.main import main
+from tactile_slam.config import Config
+from tactile_slam.eval.tracking_metrics import per_axis_mae
+from tactile_slam.geometry.frame import InputError
+from tactile_slam.io.gradients import GradientSequence
+from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
+from tactile_slam.sim.episode import SimulationSettings, read_episode, simulate_episode
+
+STATS_KEYS = {"frames", "contact_frames", "keyframes", "sessions", "fps", "timing_ms", "frames_with_pose"}
+
+
+@pytest.fixture(scope="module")
+def tracking_episode(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ep_tracking")
+    return simulate_episode(out, SimulationSettings(object="seed", kind="tracking", frames=60, seed=3))
+
+
+@pytest.fixture(scope="module")
+def contact_loss_episode(tmp_path_factory):
+    out = tmp_path_factory.mktemp("ep_loss")
+    return simulate_episode(out, SimulationSettings(object="seed", kind="contact_loss", frames=140, seed=4))
+
+
+def gt_relative(episode_dir, first):
+    ep = read_episode(episode_dir)
+    gt = ep.object_T_sensor
+    rel = np.linalg.inv(gt[first]) @ gt
+    return rel, ep.in_contact
+
+
+def run(episode_dir, out, method):
+    src = GradientSequence(episode_dir / "gt_gradients.npz", fps=25)
+    return OfflinePipeline(src, Config(), out, RunOptions(method=method, progress=False)).run()
+
+
+@pytest.mark.parametrize("method", ["nf-kf", "gelslam"])
+def test_tracking_episode_accuracy(tracking_episode, tmp_path, method):
+    res = run(tracking_episode, tmp_path, method)
+    first = int(np.nonzero(res.frame_group >= 0)[0][0])
+    gt, in_contact = gt_relative(tracking_episode, first)
+    assert res.poses.shape == (len(gt), 4, 4)
+    has = np.isfinite(res.poses).all(axis=(1, 2))
+    # every in-contact frame has a pose, frames without contact have NaN rows
+    np.testing.assert_array_equal(has, res.frame_group >= 0)
+    assert has.sum() >= 0.9 * in_contact.sum()
+    assert not has[~in_contact].any()
+    mae = per_axis_mae(res.poses, gt, has)
+    assert max(mae["x_mm"], mae["y_mm"], mae["z_mm"]) < 0.05, mae
+    assert max(mae["rx_deg"], mae["ry_deg"], mae["rz_deg"]) < 0.5, mae
+    stats = json.loads((tmp_path / "stats.json").read_text())
+    assert STATS_KEYS <= set(stats) and stats["completed"]
+    for name in ("poses.npy", "trajectory_tum.txt", "keyframes.json", "config.yaml"):
+        assert (tmp_path / name).is_file()
+    tum = np.loadtxt(tmp_path / "trajectory_tum.txt")
+    assert len(tum) == has.sum()
+    np.testing.assert_allclose(tum[:, 1:4], res.poses[has, :3, 3], atol=1e-9)
+
+
+def test_contact_loss_sessions_merge_with_loops(contact_loss_episode, tmp_path):
+    full = run(contact_loss_episode, tmp_path / "full", "gelslam")
+    odo = run(contact_loss_episode, tmp_path / "odo", "nf-kf")
+    assert full.stats["sessions"] >= 2 and odo.stats["groups"] == odo.stats["sessions"]
+    assert full.stats["loops"] >= 1 and full.stats["groups"] < full.stats["sessions"]
+    # the largest merged group: its frames are posed in the frame of its first frame
+    groups, counts = np.unique(full.frame_group[full.frame_group >= 0], return_counts=True)
+    g = groups[np.argmax(counts)]
+    sel = full.frame_group == g
+    assert counts.max() > np.bincount(odo.frame_group[odo.frame_group >= 0]).max()
+    first = int(np.nonzero(sel)[0][0])
+    gt, _ = gt_relative(contact_loss_episode, first)
+    mae = per_axis_mae(full.poses_by_group, gt, sel)
+    assert max(mae["x_mm"], mae["y_mm"], mae["z_mm"]) < 0.1, mae
+    assert max(mae["rx_deg"], mae["ry_deg"], mae["rz_deg"]) < 1.0, mae
+    loops = json.loads((tmp_path / "full" / "loops.json").read_text())
+    assert len(loops) == full.stats["loops"]
+    assert (tmp_path / "full" / "pose_graph.g2o").is_file()
+
+
+def test_no_contact_is_an_error_and_writes_nothing(tmp_path):
+    np.savez(tmp_path / "flat.npz", gradients=np.zeros((5, 240, 320, 2), np.float16),
+             contact=np.zeros((5, 240, 320), bool))
+    src = GradientSequence(tmp_path / "flat.npz", fps=25)
+    with pytest.raises(InputError, match="no frame of 5 is in contact"):
+        OfflinePipeline(src, Config(), tmp_path / "out", RunOptions(progress=False)).run()
+    assert not (tmp_path / "out").exists()
+
+
+def test_cli_bad_inputs(tmp_path, capsys):
+    assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o1")]) == 2
+    assert "not found" in capsys.readouterr().err
+    scan = tmp_path / "scan"
+    scan.mkdir()
+    (scan / "gelsight.avi").write_bytes(b"\x00" * 1000)  # corrupt video
+    assert main(["run", str(scan), "--out", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err
+    assert "gelsight.avi" in err
+    assert not (tmp_path / "o2").exists()
+
+
+def test_method_validation(tmp_path):
+    with pytest.raises(ValueError, match="method must be one of"):
+        OfflinePipeline(iter([]), Config(), tmp_path, RunOptions(method="icp"))
+
+
+def test_scan_folder_frame_indexing(tracking_episode, tmp_path):
+    """A recorded scan: rows of poses.npy are video indices; the 10 background frames are NaN."""
+    from tactile_slam.io.video import write_video
+
+    grads, contact = read_episode(tracking_episode).gradients()
+    # colour stand-in: an image whose change against the background follows the slopes
+    bg = np.full((240, 320, 3), 120, np.uint8)
+    imgs = [bg] * 10 + [np.clip(bg + 400 * g[..., :1].astype(np.float32) * np.ones(3), 0, 255).astype(np.uint8)
+                        for g in grads[:5]]
+    scan = tmp_path / "scan"
+    scan.mkdir()
+    write_video(scan / "gelsight.avi", np.stack(imgs), 25)
+    cv2.imwrite(str(tmp_path / "unused.png"), bg)
+    from tactile_slam.io.scan import Scan
+
+    s = Scan(scan)
+    assert s.start == 10 and len(s) == 5
+    assert [f.index for f in s] == list(range(10, 15))
