@@ -12,7 +12,8 @@ def test_roundtrip(tmp_path, device):
     back, back_meta = load_model(tmp_path / "m.pt", device)
     assert back.hidden == (16, 24) and back_meta == meta and not back.training
     x = torch.rand(50, 5)
-    torch.testing.assert_close(back(x.to(device)).cpu(), model(x), rtol=0, atol=0)
+    tol = 0.0 if device.type == "cpu" else 1e-4  # GPU matmuls may use other kernels
+    torch.testing.assert_close(back(x.to(device)).cpu(), model(x), rtol=tol, atol=tol)
 
 
 def test_reference_model_loads(mini_data):

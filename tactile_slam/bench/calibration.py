@@ -1,0 +1,80 @@
+"""Calibration: accuracy, training time and inference speed per MLP size, beside the SDK model.
+
+For each hidden-size choice and seeded split of a calibration folder: train with the
+default recipe, then score the held-out presses (gradient-angle MAE in rad, normal-angle
+MAE in degrees) with the reference model on the same presses, and time full-frame
+decoding (240x320 -> gradients) of the trained model.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+from pathlib import Path
+
+import torch
+
+from tactile_slam.bench.common import time_fn, timing_stats, write_json
+from tactile_slam.calibration.catalog import load_calibration_set
+from tactile_slam.calibration.dataset import build_dataset
+from tactile_slam.calibration.evaluate import evaluate_model
+from tactile_slam.calibration.labels import label_presses
+from tactile_slam.calibration.model import GradientDecoder, load_model
+from tactile_slam.calibration.train import LOSSES, TrainConfig, train_model
+from tactile_slam.config import REPO_ROOT, load_config
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--data", default=str(REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"),
+                   help="folder holding calibration/ and reference_model/nnmodel.pth")
+    p.add_argument("--hidden", default="16,16;32,32,32;64,64,64", help="sizes to compare, ';'-separated")
+    p.add_argument("--seeds", type=int, default=3, help="seeded splits per size")
+    p.add_argument("--epochs", type=int, default=TrainConfig.epochs)
+    p.add_argument("--lr-step", type=int, default=TrainConfig.lr_step)
+    p.add_argument("--loss", default=TrainConfig.loss, choices=sorted(LOSSES))
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--repeats", type=int, default=20, help="timed full-frame decodes per model")
+
+
+def run(args) -> Path:
+    torch.set_num_threads(args.threads)
+    sensor = load_config("gelsight_mini").sensor
+    data_dir = Path(args.data)
+    calib = load_calibration_set(data_dir / "calibration", sensor.shape)
+    labels = {lb.reldir: lb for lb in label_presses(calib, sensor.mm_per_px, sensor.max_indentation_mm)}
+    ref, _ = load_model(data_dir / "reference_model" / "nnmodel.pth", args.device)
+    bg = torch.from_numpy(calib.background).to(args.device)
+    frame = torch.from_numpy(calib.image(calib.presses[0])).to(args.device)[None]
+    sync = args.device.startswith("cuda")
+    splits = [build_dataset(calib, labels, sensor.mm_per_px, seed) for seed in range(args.seeds)]
+    ref_evals = [evaluate_model(ref, calib, labels, s.split["test"], sensor.mm_per_px) for s in splits]
+    results = {"reference": {
+        "angle_mae_rad": statistics.mean(e.angle_mae for e in ref_evals),
+        "normal_mae_deg": statistics.mean(e.to_dict()["normal_mae_deg"] for e in ref_evals),
+        "decode_frame": timing_stats(time_fn(lambda: GradientDecoder(ref, bg, 0.0)(frame), args.repeats, 2, sync)),
+    }}
+    for spec in args.hidden.split(";"):
+        hidden = tuple(int(h) for h in spec.split(","))
+        runs = []
+        for seed, data in enumerate(splits):
+            cfg = TrainConfig(hidden=hidden, epochs=args.epochs, lr_step=args.lr_step, loss=args.loss, seed=seed,
+                              device=args.device)
+            res = train_model(data.train, cfg)
+            ev = evaluate_model(res.model, calib, labels, data.split["test"], sensor.mm_per_px)
+            runs.append({"seed": seed, "train_s": res.seconds, "angle_mae_rad": ev.angle_mae,
+                         "normal_mae_deg": ev.to_dict()["normal_mae_deg"],
+                         "reference_angle_mae_rad": ref_evals[seed].angle_mae})
+        decoder = GradientDecoder(res.model, bg, 0.0)
+        results["mlp_5-" + "-".join(map(str, hidden)) + "-2"] = {
+            "parameters": sum(p.numel() for p in res.model.parameters()),
+            "angle_mae_rad": statistics.mean(r["angle_mae_rad"] for r in runs),
+            "normal_mae_deg": statistics.mean(r["normal_mae_deg"] for r in runs),
+            "train_s_median": statistics.median(r["train_s"] for r in runs),
+            "splits_no_worse_than_reference": sum(r["angle_mae_rad"] <= r["reference_angle_mae_rad"] for r in runs),
+            "decode_frame": timing_stats(time_fn(lambda: decoder(frame), args.repeats, 2, sync)),
+            "runs": runs,
+        }
+    results["settings"] = {"epochs": args.epochs, "lr_step": args.lr_step, "loss": args.loss, "seeds": args.seeds,
+                           "device": args.device, "threads": args.threads}
+    return write_json(args.out, "calibration", results)
