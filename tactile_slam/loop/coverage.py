@@ -60,6 +60,17 @@ def distance_to_background(contact: torch.Tensor, max_distance: float) -> torch.
     """
     if contact.ndim != 3:
         raise CoverageError(f"contact must be (B, H, W), got {tuple(contact.shape)}")
+    rows_any = contact.any(dim=(0, 2)).nonzero()
+    cols_any = contact.any(dim=(0, 1)).nonzero()
+    if rows_any.numel() == 0:
+        return torch.zeros(contact.shape, dtype=torch.float32, device=contact.device)
+    # Everything outside the contacts' bounding box is background: work on the crop.
+    r0, r1 = int(rows_any[0]), int(rows_any[-1]) + 1
+    c0, c1 = int(cols_any[0]), int(cols_any[-1]) + 1
+    if (r0, r1, c0, c1) != (0, contact.shape[1], 0, contact.shape[2]):
+        out = torch.zeros(contact.shape, dtype=torch.float32, device=contact.device)
+        out[:, r0:r1, c0:c1] = distance_to_background(contact[:, r0:r1, c0:c1], max_distance)
+        return out
     b, h, w = contact.shape
     dev = contact.device
     m = int(math.ceil(max_distance))
@@ -94,7 +105,7 @@ def boundary_weights(contact: torch.Tensor, length: float | None = None) -> torc
     l = contact.shape[-2] / 60.0 if length is None else float(length)
     if not l > 0:
         raise CoverageError(f"weight length must be > 0, got {l}")
-    d = distance_to_background(contact, 12.0 * l)  # tanh(9) == 1 in float32
+    d = distance_to_background(contact, 10.0 * l)  # W(10 l) = 1 - 8e-7
     return 0.5 * (torch.tanh(d / l - 3.0) + 1.0) * contact
 
 

@@ -194,7 +194,11 @@ def test_depth_gate_and_symmetric_options(device):
     big, small = sym._nodes[0], sym._nodes[1]
     own = float(boundary_weights(small_mask[None]).sum())
     assert float(sym.overlaps(big, [small])[0]) == pytest.approx(own, rel=1e-5)
-    assert float(CoverageSet(CFG).overlaps(big, [small])[0]) == pytest.approx(40 * 40, rel=1e-4)
+    asym = CoverageSet(CFG)
+    asym.add(keyframe(0, rect(20, 220, 10, 310), device), pose())
+    asym.add(keyframe(1, small_mask, device), pose(dx_px=400))
+    asym.update_poses({1: pose()})
+    assert float(asym.overlaps(asym._nodes[0], [asym._nodes[1]])[0]) == pytest.approx(40 * 40, rel=1e-4)
 
 
 def test_errors():
