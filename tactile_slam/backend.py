@@ -32,6 +32,7 @@ from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import Loop, LoopDetector
 from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.incremental import IncrementalSolver
+from tactile_slam.posegraph.sessions import SessionGroups
 from tactile_slam.tracking.keyframe import Keyframe
 
 
@@ -66,29 +67,13 @@ class BackEnd:
         self.keyframes: dict[int, Keyframe] = {}
         self.loops: list[Loop] = []
         self.stats = BackEndStats()
-        self._parent: dict[int, int] = {}  # union-find over groups (root session ids)
-        self._members: dict[int, list[int]] = {}  # root -> keyframe ids
-        self._session_group: dict[int, int] = {}  # session -> its group's root at creation
-        self._head: dict[int, int] = {}  # root -> keyframe id holding that group's prior
+        self.sessions = SessionGroups()
         self._last_in_session: dict[int, int] = {}
-
-    # ------------------------------------------------------------------ groups
-    def _find(self, g: int) -> int:
-        root = g
-        while self._parent[root] != root:
-            root = self._parent[root]
-        while self._parent[g] != root:  # path compression
-            self._parent[g], g = root, self._parent[g]
-        return root
-
-    def group_of(self, kf_id: int) -> int:
-        """Connected-group id of a keyframe."""
-        return self._find(self._session_group[self.keyframes[kf_id].session])
 
     @property
     def group(self) -> dict[int, int]:
-        """Keyframe id -> group id, for every keyframe."""
-        return {k: self.group_of(k) for k in self.keyframes}
+        """Keyframe id -> group id (its root session), for every keyframe."""
+        return {k: self.sessions.group_of(k) for k in self.keyframes}
 
     @property
     def start_T_kf(self) -> dict[int, torch.Tensor]:
@@ -105,15 +90,10 @@ class BackEnd:
         self.keyframes[kf.id] = kf
         self.stats.keyframes += 1
         prev = self._last_in_session.get(kf.session)
-        if kf.new_session or prev is None:
-            self._parent[kf.session] = kf.session
-            self._session_group[kf.session] = kf.session
-            self._members[kf.session] = [kf.id]
-            self._head[kf.session] = kf.id
+        if self.sessions.add_keyframe(kf.id, kf.session):
             self.graph.add_node(kf.id)
             self.graph.add_prior(kf.id)
         else:
-            self._members[self.group_of(prev)].append(kf.id)
             self.graph.add_node(kf.id, self.graph.pose(prev) @ kf.prev_T_kf)
             self.graph.add_between(prev, kf.id, kf.prev_T_kf, kind="odometry")
         self._last_in_session[kf.session] = kf.id
@@ -128,21 +108,23 @@ class BackEnd:
         t1 = time.perf_counter()
         self.stats.time_loop_detection.append(t1 - t0)
 
-        merged: list[int] = []
         for loop in loops:
             self.graph.add_between(loop.ref_id, loop.tar_id, loop.ref_T_tar, kind="loop")
-            merged += self._merge(loop)
+        merge = self.sessions.merge(self.graph, kf.id, [(lp.ref_id, lp.ref_T_tar) for lp in loops],
+                                    self.config.posegraph.reinit_merged)
+        self.stats.merges += len(merge.absorbed)
         self.loops += loops
         self.stats.loops += len(loops)
         self.solver.update()
         t2 = time.perf_counter()
         self.stats.time_pose_graph.append(t2 - t1)
 
-        root = self.group_of(kf.id)
-        poses = dict(zip(self._members[root], self.graph.poses(self._members[root])))
+        root = merge.root
+        members = self.sessions.members(root)
+        poses = dict(zip(members, self.graph.poses(members)))
         self.coverage.update_poses({k: p for k, p in poses.items() if k in self.coverage})
-        if merged:
-            self.coverage.merge(root, merged)
+        if merge.absorbed:
+            self.coverage.merge(root, merge.absorbed)
         before = set(self.coverage.active)
         self.coverage.add(kf, poses[kf.id], root)
         if self.detector is not None:
@@ -158,28 +140,3 @@ class BackEnd:
         """Final full warm-started solve (end of the scan)."""
         if self.keyframes:
             self.solver.finalize()
-
-    # ------------------------------------------------------------------ merging
-    def _merge(self, loop: Loop) -> list[int]:
-        """Merge the groups of ``loop``'s keyframes; returns the absorbed group ids."""
-        g_ref, g_tar = self.group_of(loop.ref_id), self.group_of(loop.tar_id)
-        if g_ref == g_tar:
-            return []
-        n_ref, n_tar = len(self._members[g_ref]), len(self._members[g_tar])
-        root, absorbed = (g_ref, g_tar) if n_ref > n_tar else (g_tar, g_ref)
-        if self.config.posegraph.reinit_merged:
-            # move the absorbed group rigidly so that the loop measurement holds
-            t_ref, t_tar = self.graph.pose(loop.ref_id), self.graph.pose(loop.tar_id)
-            if absorbed == g_tar:
-                corr = t_ref @ loop.ref_T_tar @ torch.linalg.inv(t_tar)
-            else:
-                corr = t_tar @ torch.linalg.inv(loop.ref_T_tar) @ torch.linalg.inv(t_ref)
-            ids = self._members[absorbed]
-            moved = corr @ self.graph.poses(ids)
-            for k, pose in zip(ids, moved):
-                self.graph.set_pose(k, pose)
-        self.graph.remove_prior(self._head.pop(absorbed))
-        self._parent[absorbed] = root
-        self._members[root] += self._members.pop(absorbed)
-        self.stats.merges += 1
-        return [absorbed]
