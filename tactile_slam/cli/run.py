@@ -22,6 +22,7 @@ def register(sub) -> None:
     p.add_argument("--model", default=None, help="calibration model file (default: the sensor's packaged model)")
     p.add_argument("--batch-size", type=int, default=8, help="frames per geometry batch")
     p.add_argument("--keyframe-panels", action="store_true", help="write a geometry picture per keyframe")
+    p.add_argument("--no-mesh", action="store_true", help="poses only: skip fusion and meshing")
     p.add_argument("--no-progress", action="store_true")
     p.set_defaults(func=run)
 
@@ -33,7 +34,7 @@ def run(args) -> int:
     out = Path(args.out)
     vis = KeyframePanels(out / "keyframes") if args.keyframe_panels else NullVisualizer()
     options = RunOptions(method=args.method, device=args.device, model=args.model,
-                         batch_size=args.batch_size, progress=not args.no_progress)
+                         batch_size=args.batch_size, progress=not args.no_progress, mesh=not args.no_mesh)
     result = OfflinePipeline(source, config, out, options, vis).run()
     s = result.stats
     loops = f", {s['loops']} loops, {s['groups']} groups" if "loops" in s else ""

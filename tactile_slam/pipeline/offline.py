@@ -26,6 +26,7 @@ from tactile_slam.io.scan import check_background, mean_background
 from tactile_slam.pipeline.odometry import OdometryMap
 from tactile_slam.pipeline.outputs import frame_poses, main_group_poses, write_json, write_tum
 from tactile_slam.pipeline.visualizer import NullVisualizer
+from tactile_slam.recon import ReconError, TriMesh, reconstruct
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
 from tactile_slam.tracking.keyframe import Keyframe
 from tactile_slam.tracking.tracker import NormalFlowRegistrar, Tracker
@@ -55,6 +56,8 @@ class RunOptions:
         model: calibration model path (default: the sensor's packaged model).
         batch_size: frames per geometry batch.
         progress: show a progress bar.
+        mesh: reconstruct the main group (``mesh_fused.ply``, ``mesh.ply``,
+            ``mesh.png``); ``False`` computes poses only.
     """
 
     method: str = "gelslam"
@@ -62,6 +65,7 @@ class RunOptions:
     model: str | None = None
     batch_size: int = 8
     progress: bool = True
+    mesh: bool = True
 
 
 @dataclass
@@ -250,12 +254,32 @@ class OfflinePipeline:
         }
         if isinstance(backend, BackEnd):
             stats.update(self._write_backend(backend, med))
+        if self.options.mesh and error is None:
+            stats["reconstruction"] = self._reconstruct(keyframes, start_T_kf, group_of_kf, kf_of_full, kf_T_full)
         if error is not None:
             stats["error"] = f"{type(error).__name__}: {error}"
         write_json(out / "stats.json", stats)
         self.config.save(out / "config.yaml")
         return RunResult(poses, by_group, groups, keyframes, stats)
 
+
+    def _reconstruct(self, keyframes, start_T_kf, group_of_kf, kf_of, kf_T) -> dict:
+        """Mesh of the main group in the frame of its first contact frame (the frame of
+        ``poses.npy``); a run that cannot be meshed says why in ``stats.json``."""
+        first = int(np.nonzero(kf_of >= 0)[0][0])
+        label = group_of_kf[int(kf_of[first])]
+        try:
+            res = reconstruct(keyframes, start_T_kf, self.config, group_of_kf, group=label)
+        except ReconError as exc:
+            print(f"reconstruction skipped: {exc}")
+            return {"skipped": str(exc)}
+        start_T_first = start_T_kf[int(kf_of[first])] @ torch.as_tensor(kf_T[first])
+        first_T_start = torch.linalg.inv(start_T_first)
+        res.fused_mesh = transform_mesh(res.fused_mesh, first_T_start)
+        if res.mesh is not None:
+            res.mesh = transform_mesh(res.mesh, first_T_start)
+        res.save(self.out_dir)
+        return {k: v for k, v in res.stats.items() if isinstance(v, (int, float, str, bool))}
 
     def _write_backend(self, backend: BackEnd, med) -> dict:
         """``loops.json``, ``pose_graph.g2o`` and the back end's statistics."""
@@ -274,6 +298,12 @@ class OfflinePipeline:
                                        "pose_graph": med(st.time_pose_graph),
                                        "coverage": med(st.time_coverage)},
         }
+
+
+def transform_mesh(mesh: TriMesh, a_T_b: torch.Tensor) -> TriMesh:
+    """A mesh in frame b moved into frame a (vertices and normals)."""
+    T = a_T_b.to(mesh.vertices)
+    return replace(mesh, vertices=mesh.vertices @ T[:3, :3].T + T[:3, 3], normals=mesh.normals @ T[:3, :3].T)
 
 
 def _chain(first: list, rest):

@@ -6,6 +6,7 @@ import json
 
 import cv2
 import numpy as np
+import open3d as o3d
 import pytest
 
 from tactile_slam.cli.main import main
@@ -38,14 +39,14 @@ def gt_relative(episode_dir, first):
     return rel, ep.in_contact
 
 
-def run(episode_dir, out, method):
+def run(episode_dir, out, method, mesh=False):
     src = GradientSequence(episode_dir / "gt_gradients.npz", fps=25)
-    return OfflinePipeline(src, Config(), out, RunOptions(method=method, progress=False)).run()
+    return OfflinePipeline(src, Config(), out, RunOptions(method=method, progress=False, mesh=mesh)).run()
 
 
 @pytest.mark.parametrize("method", ["nf-kf", "gelslam"])
 def test_tracking_episode_accuracy(tracking_episode, tmp_path, method):
-    res = run(tracking_episode, tmp_path, method)
+    res = run(tracking_episode, tmp_path, method, mesh=method == "gelslam")
     first = int(np.nonzero(res.frame_group >= 0)[0][0])
     gt, in_contact = gt_relative(tracking_episode, first)
     assert res.poses.shape == (len(gt), 4, 4)
@@ -64,6 +65,19 @@ def test_tracking_episode_accuracy(tracking_episode, tmp_path, method):
     tum = np.loadtxt(tmp_path / "trajectory_tum.txt")
     assert len(tum) == has.sum()
     np.testing.assert_allclose(tum[:, 1:4], res.poses[has, :3, 3], atol=1e-9)
+    if method == "gelslam":
+        # the fused surface, brought into the object frame through the ground-truth pose
+        # of the first contact frame, lies on the object
+        ep = read_episode(tracking_episode)
+        fused = o3d.io.read_triangle_mesh(str(tmp_path / "mesh_fused.ply"))
+        v = np.asarray(fused.vertices)
+        T = ep.object_T_sensor[first]
+        v_obj = v @ T[:3, :3].T + T[:3, 3]
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(ep.mesh()))
+        dist = scene.compute_distance(o3d.core.Tensor(v_obj.astype(np.float32))).numpy()
+        assert len(v) > 1000 and np.median(dist) < 0.05e-3, np.median(dist)
+        assert (tmp_path / "mesh.ply").is_file() and (tmp_path / "mesh.png").is_file()
 
 
 def test_contact_loss_sessions_merge_with_loops(contact_loss_episode, tmp_path):
