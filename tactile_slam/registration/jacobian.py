@@ -14,6 +14,8 @@ that function with ``torch.func``; :func:`jacobian_analytic` is the closed form
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import torch
 from torch.func import jacrev, vmap
 
@@ -30,15 +32,20 @@ _EULER_INDEX = (
 )
 
 
+@lru_cache(maxsize=16)
+def _euler_constants(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
+    return (torch.tensor([[0.0, 1.0]], dtype=dtype, device=device),
+            torch.tensor(_EULER_INDEX, device=device))
+
+
 def euler_to_matrix(angles: torch.Tensor) -> torch.Tensor:
     """``R = Rz(wz) Ry(wy) Rx(wx)`` (scipy's extrinsic "xyz"); differentiable.
 
     ``(B, 3)`` angles in rad -> ``(B, 3, 3)``.
     """
+    zo, idx = _euler_constants(angles.dtype, angles.device)
     s = torch.sin(angles)
-    zo = torch.tensor([0.0, 1.0], dtype=angles.dtype, device=angles.device).expand(angles.shape[0], 2)
-    table = torch.cat([torch.cos(angles), s, -s, zo], dim=1)
-    idx = torch.tensor(_EULER_INDEX, device=angles.device)
+    table = torch.cat([torch.cos(angles), s, -s, zo.expand(angles.shape[0], 2)], dim=1)
     m = table[:, idx].view(-1, 3, 3, 3)
     return m[:, 2] @ m[:, 1] @ m[:, 0]
 

@@ -204,13 +204,14 @@ def _inside(grid: torch.Tensor) -> torch.Tensor:
     return grid.amin(-1) >= -1.0
 
 
-def _solve(ata: torch.Tensor, atb: torch.Tensor, damping: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Damped 5x5 normal equations ``(A + diag(damping d + eps max d)) x = b`` by Cholesky
-    (Marquardt scaling; ``eps`` keeps unobservable directions at 0 instead of NaN).
-
-    Returns ``(delta (B, 5), solved (B,) bool)``."""
-    d = ata.diagonal(dim1=1, dim2=2)
-    damped = ata + torch.diag_embed(damping * d + 1e-12 * d.amax(1, keepdim=True))
+def _solve(ata: torch.Tensor, atb: torch.Tensor, ridge: torch.Tensor, damping: float
+           ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Damped 5x5 normal equations ``(A + ridge + damping diag(A)) x = b`` by Cholesky
+    (Marquardt scaling; the tiny ``ridge`` keeps unobservable directions at 0 instead of
+    NaN). Returns ``(delta (B, 5), solved (B,) bool)``."""
+    damped = ata + ridge
+    if damping > 0:
+        damped = damped + torch.diag_embed(damping * ata.diagonal(dim1=1, dim2=2))
     chol, info = torch.linalg.cholesky_ex(damped)
     return torch.cholesky_solve(atb.unsqueeze(-1), chol).squeeze(-1), info == 0
 
@@ -235,32 +236,37 @@ def _gauss_newton(st: _State, lvl: Level, points, valid, n_map, c_map, scale, al
     dt = points.dtype
     jtj, jac = _as_batch(lvl.jtj, b), _as_batch(lvl.jacobian, b)
     normals_t = _as_batch(lvl.normals_t, b)
+    ridge = torch.diag_embed(1e-12 * jtj.sum(1).view(b, 5, 5).diagonal(dim1=1, dim2=2).amax(1, keepdim=True)
+                             .expand(b, 5))
+    # squared step norms (rotation, translation) against squared tolerances in one product
+    split = torch.tensor([[1.0, 0.0]] * 3 + [[0.0, 1.0]] * 2, dtype=torch.float64, device=points.device)
+    tol2 = torch.tensor([config.rot_tol, config.trans_tol_m], dtype=torch.float64, device=points.device) ** 2
+    tol2 = tol2 * tol_scale**2
     rot, txy, active, lost, converged = st.rot, st.txy, st.active.clone(), st.lost.clone(), st.converged.clone()
     iterations, ata = st.iterations.clone(), st.ata
-    rot_tol, trans_tol = config.rot_tol * tol_scale, config.trans_tol_m * tol_scale
     for i in range(max_iters):
         r_dt = rot.to(dt)
         grid = torch.baddbmm((txy.to(dt) * scale).unsqueeze(1), points, (r_dt[:, :2] * scale[:, None]).transpose(1, 2))
         near = _sample(c_map, grid, "nearest", align_corners).view(b, k)
         shared = (near > 0.5) & _inside(grid) & valid
-        lost |= active & (shared.sum(1) < config.min_shared)
-        active &= ~lost
         # residual R^T N_tar(x') - n, (B, 3, K), and the normal equations in float64
         res = torch.bmm(r_dt.transpose(1, 2), _sample(n_map, grid, "bilinear", align_corners)) - normals_t
         w = shared.to(torch.float64)
         ata = torch.bmm(w.unsqueeze(1), jtj).view(b, 5, 5)
         atb = torch.bmm((res.to(torch.float64) * w.unsqueeze(1)).view(b, 1, 3 * k), jac).view(b, 5)
-        delta, solved = _solve(ata, atb, config.lm_damping)
+        delta, solved = _solve(ata, atb, ridge, config.lm_damping)
+        # too few shared samples, or an unsolvable step: lost (the pose stays as it was)
         solved &= torch.isfinite(delta).all(1)
-        lost |= active & ~solved
-        active &= solved
+        bad = active & ((shared.sum(1) < config.min_shared) | ~solved)
+        lost |= bad
+        active &= ~bad
         delta = torch.where(active[:, None], delta, torch.zeros_like(delta))
         # T <- T dT^-1 with dT = [R(w) | (tx, ty, 0)]; tz stays 0 during the iterations
         rot = rot @ euler_to_matrix(delta[:, :3]).transpose(1, 2)
         txy = txy - (rot[:, :2, :2] @ delta[:, 3:, None]).squeeze(-1)
         iterations += active
         if i + 1 >= min_iters:
-            step = (delta[:, :3].norm(dim=1) < rot_tol) & (delta[:, 3:].norm(dim=1) < trans_tol)
+            step = ((delta.square() @ split) < tol2).all(1)
             converged |= active & step
             active &= ~step
             if not bool(active.any()):
