@@ -2,9 +2,9 @@
 
 The inverse of the calibration MLP: a small MLP maps the gradient angles
 ``(atan gx, atan gy)`` and the normalised pixel position ``(x/W, y/H)`` to the colour
-change against the background. It is fitted on the same labelled presses (analytic sphere
-angles inside each disc shrunk by the margin, plus zero-gradient background pixels whose
-colour change is zero), so synthetic images take this sensor's colours.
+change against the background, built to be exactly zero for a flat gel. It is fitted on
+the same labelled presses (analytic sphere angles inside each disc shrunk by the margin
+against the measured colour change), so synthetic images take this sensor's colours.
 """
 
 from __future__ import annotations
@@ -24,7 +24,8 @@ COLOUR_FORMAT_TAG = "tactile-slam-colour-model"
 
 
 class _ColourMLP(nn.Module):
-    """``(N, 4)`` ``[theta_x, theta_y, x/W, y/H]`` -> ``(N, 3)`` BGR difference."""
+    """``(N, 4)`` ``[theta_x, theta_y, x/W, y/H]`` -> ``(N, 3)`` BGR difference, exactly zero
+    for zero angles (a flat gel looks like the background): ``net(a, p) - net(0, p)``."""
 
     def __init__(self, hidden: tuple[int, ...]):
         super().__init__()
@@ -37,7 +38,8 @@ class _ColourMLP(nn.Module):
         self.net = nn.Sequential(*layers)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.net(x)
+        flat = torch.cat([torch.zeros_like(x[:, :2]), x[:, 2:]], dim=1)
+        return self.net(x) - self.net(flat)
 
 
 class ColourModel:
@@ -48,7 +50,7 @@ class ColourModel:
         meta: free metadata stored with the model (sensor, image size, fit error).
     """
 
-    def __init__(self, hidden: tuple[int, ...] = (32, 32), meta: dict[str, Any] | None = None):
+    def __init__(self, hidden: tuple[int, ...] = (64, 64), meta: dict[str, Any] | None = None):
         self.hidden = tuple(int(h) for h in hidden)
         self.net = _ColourMLP(self.hidden).eval()
         self.meta = dict(meta or {})
@@ -119,10 +121,10 @@ class ColourSamples:
 
 def colour_samples(
     calib: CalibrationSet, labels: dict[str, PressLabel], reldirs: list[str], mm_per_px: float,
-    margin_px: float = 4.0, background_ratio: float = 0.2, seed: int = 0,
+    margin_px: float = 4.0,
 ) -> ColourSamples:
-    """Samples inside the reliable labelled discs of ``reldirs`` plus zero-gradient,
-    zero-difference background pixels (``background_ratio`` of the contact count)."""
+    """Samples inside the reliable labelled discs of ``reldirs``: analytic angles and
+    position -> measured colour change against the background."""
     feats, cols = [], []
     bg = torch.from_numpy(calib.background)
     for reldir in reldirs:
@@ -140,16 +142,11 @@ def colour_samples(
         cols.append(diff[mask])
     if not feats:
         raise CalibrationDataError("no reliable labelled press to fit the colour model on")
-    n_bg = int(sum(c.shape[0] for c in cols) * background_ratio)
-    bg_f = ColourModel.features(torch.zeros(1, *calib.shape, 2))[0].reshape(-1, 4)
-    idx = torch.randperm(bg_f.shape[0], generator=torch.Generator().manual_seed(seed))[:n_bg]
-    feats.append(bg_f[idx])
-    cols.append(torch.zeros(idx.numel(), 3))
     return ColourSamples(torch.cat(feats), torch.cat(cols))
 
 
 def fit_colour_model(
-    samples: ColourSamples, hidden: tuple[int, ...] = (32, 32), epochs: int = 40, batch_size: int = 1024,
+    samples: ColourSamples, hidden: tuple[int, ...] = (64, 64), epochs: int = 40, batch_size: int = 1024,
     lr: float = 3e-3, seed: int = 0, device: str = "cpu",
 ) -> tuple[ColourModel, float]:
     """Fit a :class:`ColourModel` (L1 on BGR, Adam, step decay x0.5 every ``epochs // 8``).

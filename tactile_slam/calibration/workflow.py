@@ -99,7 +99,7 @@ def run_training(
     if evals:
         say(format_comparison(evals))
     if colour_model:
-        samples = colour_samples(calib, by_dir, data.split["train"], sensor.mm_per_px, seed=cfg.seed)
+        samples = colour_samples(calib, by_dir, [p.reldir for p in calib.presses], sensor.mm_per_px)
         cm, err = fit_colour_model(samples, seed=cfg.seed, device=cfg.device)
         cm.meta = {"sensor": sensor.name, "mm_per_px": sensor.mm_per_px, "image_size": list(calib.shape),
                    "data_fingerprint": calib.fingerprint(), "seed": cfg.seed, "train_mae_bgr": err}
