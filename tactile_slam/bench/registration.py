@@ -171,7 +171,9 @@ def run(args) -> Path:
             results.append(fn(cpu_refs[i], cpu_tars[i]))
             samples.append(time.perf_counter() - t1)
         res = RegistrationResult.cat(results)
+        sel = {o: torch.tensor([obj_of[i] == o for i in pick]) for o in args.objects}
         methods[name] = {"time_per_pair": timing_stats(samples), "all": summarise(res, truth[pick], args),
+                         "per_object": {o: summarise(res[m], truth[pick][m], args) for o, m in sel.items() if m.any()},
                          "pairs": [f"{obj_of[i]}: {labels[i % len(labels)]}" for i in pick]}
         nf = methods["normalflow"]["all"]["per_pair"]
         methods[name]["normalflow_on_same_pairs"] = {
