@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, field
 
-import numpy as np
 import torch
 
 from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet

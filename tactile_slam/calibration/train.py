@@ -48,7 +48,9 @@ class TrainConfig:
         if self.loss not in LOSSES:
             raise ValueError(f"unknown loss {self.loss!r}; choose from {sorted(LOSSES)}")
         if self.epochs < 1 or self.batch_size < 1 or self.lr <= 0:
-            raise ValueError(f"epochs, batch_size and lr must be positive, got {self.epochs}, {self.batch_size}, {self.lr}")
+            raise ValueError(
+                f"epochs, batch_size and lr must be positive, got {self.epochs}, {self.batch_size}, {self.lr}"
+            )
         if not self.hidden or min(self.hidden) < 1:
             raise ValueError(f"hidden sizes must be positive, got {self.hidden}")
 
@@ -144,7 +146,7 @@ def write_training_report(out_dir: str | Path, result: TrainResult, cfg: TrainCo
     fig, ax = plt.subplots(figsize=(6, 4))
     ax.plot(ep, [h["train_loss"] for h in result.history], label=f"train loss ({cfg.loss})")
     if any(h["test_mae"] is not None for h in result.history):
-        ax.plot(ep, [h["test_mae"] for h in result.history], label="held-out angle MAE (rad)")
+        ax.plot(ep, [h["test_mae"] for h in result.history], label="held-out angle MAE (rad, with background samples)")
     ax.set_yscale("log")
     ax.set_xlabel("epoch")
     ax.set_title(f"MLP 5-{'-'.join(map(str, cfg.hidden))}-2, {result.seconds:.1f} s")

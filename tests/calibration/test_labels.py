@@ -134,7 +134,8 @@ class TestRealPresses:
                 for dy in range(-5, 6):
                     ex, ey = xs - (lb.cx + dx), ys - (lb.cy + dy)
                     ez = np.sqrt(np.maximum(ball_r**2 - ex**2 - ey**2, 1e-9))
-                    err = np.abs(pred[:, 0] - np.arctan2(ex, ez)).mean() + np.abs(pred[:, 1] - np.arctan2(ey, ez)).mean()
+                    err = (np.abs(pred[:, 0] - np.arctan2(ex, ez)).mean()
+                           + np.abs(pred[:, 1] - np.arctan2(ey, ez)).mean())
                     best = min(best, (float(err), dx, dy))
             close += max(abs(best[1]), abs(best[2])) <= 3
         assert close >= 0.8 * len(reliable)

@@ -3,11 +3,10 @@ import json
 import pytest
 import torch
 
-from tactile_slam.calibration.dataset import press_samples
+from tactile_slam.calibration.dataset import Samples, press_samples
 from tactile_slam.calibration.evaluate import evaluate_model
 from tactile_slam.calibration.model import GradientMLP
 from tactile_slam.calibration.train import TrainConfig, angle_mae, train_model, write_training_report
-from tactile_slam.calibration.dataset import Samples
 
 from .conftest import MM_PER_PX
 
