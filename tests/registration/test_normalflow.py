@@ -117,8 +117,9 @@ def test_different_contact_sizes_in_one_batch():
 
 def test_float32_matches_float64(scene, batched):
     ref, tars, _, init = scene
-    res64 = register(as_dtype(ref, torch.float64), as_dtype(tars, torch.float64), init, dtype=torch.float64)
-    _close(res64, batched, rot_deg=0.01, trans_mm=2e-3)
+    pick = [NAMES.index(n) for n in ("subpixel", "rz-40", "rz90_close_init", "tilt15_combo")]
+    res64 = register(as_dtype(ref, torch.float64), as_dtype(tars[pick], torch.float64), init[pick], dtype=torch.float64)
+    _close(res64, batched[pick], rot_deg=0.01, trans_mm=2e-3)
 
 
 def test_device(scene, batched, device):
