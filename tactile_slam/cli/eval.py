@@ -5,8 +5,10 @@ sensor frame of the run's reference frame, the first frame with a pose (the firs
 contact frame of the main group), NaN where there is none. The episode's ``gt_poses.npy``
 is ``object_T_sensor``; it is re-expressed as ``ref_T_curr`` for the same reference.
 Metrics use the frames from the reference on that the ground truth has in contact.
-If the run holds ``reconstructed_mesh.ply`` (in the reference frame), the reconstruction
-is scored against ``object.ply`` too. Writes ``metrics.json`` and ``tracking_error.png``.
+Each reconstruction the run holds (``mesh.ply``: the watertight mesh, ``mesh_fused.ply``:
+the fused keyframe surface, ``reconstructed_mesh.ply``: GelSLAM's name; all in metres in
+the reference frame) is scored against ``object.ply`` too. Writes ``metrics.json`` and
+``tracking_error.png``.
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ from tactile_slam.eval.tracking_metrics import AXES, per_axis_errors, tracking_r
 from tactile_slam.eval.trajectory import TrajectoryError, check_trajectory, relative_to, valid_mask
 from tactile_slam.sim.episode import read_episode, read_mesh
 
-RECON_FILE = "reconstructed_mesh.ply"
+RECON_FILES = ("mesh.ply", "mesh_fused.ply", "reconstructed_mesh.ply")
 
 
 def register(sub) -> None:
@@ -61,12 +63,14 @@ def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, to
         "gt_first_contact_frame": ep.first_contact,
         "tracking": tracking_report(est, gt, frames),
     }
-    recon_path = run_dir / RECON_FILE
-    if recon and recon_path.is_file():
+    meshes = [name for name in RECON_FILES if (run_dir / name).is_file()] if recon else []
+    if meshes:
         from tactile_slam.eval.recon_metrics import recon_report
 
-        metrics["reconstruction"] = recon_report(read_mesh(recon_path), ep.mesh(), ep.object_T_sensor[ref],
-                                                 n_touches=touches)
+        gt_mesh = ep.mesh()
+        metrics["reconstruction"] = {
+            name: recon_report(read_mesh(run_dir / name), gt_mesh, ep.object_T_sensor[ref], n_touches=touches)
+            for name in meshes}
     errors = per_axis_errors(est, gt)
     errors[~frames] = np.nan
     return metrics, {"frames": np.arange(ref, ref + len(est)), "errors": errors}
