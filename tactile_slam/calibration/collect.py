@@ -6,9 +6,9 @@ each accepted press is saved as ``<d.ddd>mm/<n>/gelsight.png`` and listed in
 ``catalog.csv`` (the layout of :mod:`tactile_slam.calibration.catalog`). A press that
 shows no contact is refused and asked for again.
 
-The capture object is injected: anything with ``read() -> (ok, frame)`` works, such as
-``cv2.VideoCapture`` or a fake device in tests. Frames larger than the working size are
-cropped and resized as for live capture (method.md section 1.1).
+Frames come from an injected ``read_frame() -> (H, W, 3) uint8 BGR`` of the working size:
+the CLI passes :class:`tactile_slam.io.camera.CameraSource` (which crops and resizes the
+raw sensor frames, method.md section 1.1); tests pass a fake device.
 """
 
 from __future__ import annotations
@@ -17,17 +17,12 @@ import csv
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
 
 import cv2
 import numpy as np
 
 from tactile_slam.calibration.catalog import BACKGROUND_NAME, CATALOG_HEADER, PRESS_IMAGE_NAME, CalibrationDataError
 from tactile_slam.calibration.labels import NoContactError, detect_contact_circle
-
-
-class Capture(Protocol):
-    def read(self) -> tuple[bool, np.ndarray]: ...
 
 
 @dataclass(frozen=True)
@@ -44,34 +39,17 @@ class CollectPlan:
     max_retries: int = 3
 
 
-def crop_resize(frame: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Live-capture preprocessing: crop ``h//7`` rows and ``w//7`` columns from each side,
-    trim to 4:3 from the top/left, resize bilinearly to ``shape`` ``(H, W)``. Frames already
-    of ``shape`` are returned unchanged."""
-    if frame.shape[:2] == tuple(shape):
-        return frame
-    h, w = frame.shape[:2]
-    f = frame[h // 7: h - h // 7, w // 7: w - w // 7]
-    h, w = f.shape[:2]
-    if w * 3 > h * 4:
-        f = f[:, w - h * 4 // 3:]
-    else:
-        f = f[h - w * 3 // 4:, :]
-    return cv2.resize(f, (shape[1], shape[0]), interpolation=cv2.INTER_LINEAR)
-
-
-def _grab(capture: Capture, shape: tuple[int, int]) -> np.ndarray:
-    ok, frame = capture.read()
-    if not ok or frame is None:
-        raise CalibrationDataError("camera returned no frame (is the sensor connected and the index right?)")
-    if frame.ndim != 3 or frame.shape[2] != 3:
-        raise CalibrationDataError(f"camera frame must be BGR (H, W, 3), got {frame.shape}")
-    return crop_resize(frame, shape)
+def _grab(read_frame: Callable[[], np.ndarray], shape: tuple[int, int]) -> np.ndarray:
+    frame = read_frame()
+    if frame is None or frame.shape != (*shape, 3):
+        got = None if frame is None else frame.shape
+        raise CalibrationDataError(f"camera frame must be BGR {(*shape, 3)}, got {got}")
+    return frame
 
 
 def collect_calibration(
     out_dir: str | Path,
-    capture: Capture,
+    read_frame: Callable[[], np.ndarray],
     plan: CollectPlan,
     prompt: Callable[[str], str] = input,
     say: Callable[[str], None] = print,
@@ -82,15 +60,16 @@ def collect_calibration(
     early); ``say`` reports progress.
 
     Raises:
-        CalibrationDataError: the output folder already holds a catalog, the camera fails,
-            or a press shows no contact after ``plan.max_retries`` tries.
+        CalibrationDataError: the output folder already holds a catalog, a frame has the
+            wrong size, or a press shows no contact after ``plan.max_retries`` tries.
+        ValueError: whatever ``read_frame`` raises when the camera fails.
     """
     out = Path(out_dir)
     if (out / "catalog.csv").exists():
         raise CalibrationDataError(f"{out} already holds a catalog.csv; choose an empty folder")
     out.mkdir(parents=True, exist_ok=True)
     prompt(f"Remove everything from the sensor, then press Enter to record {plan.background_frames} background frames")
-    frames = np.stack([_grab(capture, plan.shape).astype(np.float32) for _ in range(plan.background_frames)])
+    frames = np.stack([_grab(read_frame, plan.shape).astype(np.float32) for _ in range(plan.background_frames)])
     background = frames.mean(axis=0)
     spread = float(np.abs(frames - background).max())
     if spread > 25:
@@ -105,7 +84,7 @@ def collect_calibration(
             if answer.strip().lower() == "q":
                 break
             for attempt in range(plan.max_retries):
-                img = _grab(capture, plan.shape)
+                img = _grab(read_frame, plan.shape)
                 try:
                     detect_contact_circle(img, background, ball_r, plan.max_indentation_mm / plan.mm_per_px)
                     break

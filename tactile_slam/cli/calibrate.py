@@ -87,20 +87,18 @@ def _evaluate(args) -> int:
 
 
 def _collect(args) -> int:
-    import cv2
-
     from tactile_slam.calibration.collect import CollectPlan, collect_calibration
+    from tactile_slam.io.camera import CameraSource
 
     sensor = load_config(args.config).sensor
-    cap = cv2.VideoCapture(args.camera)
-    if not cap.isOpened():
-        raise ValueError(f"cannot open camera {args.camera}")
+    device = int(args.camera) if args.camera.isdigit() else (args.camera or sensor.name)
+    source = CameraSource(device, sensor.shape, sensor.fps, (sensor.raw_height, sensor.raw_width))
     try:
         plan = CollectPlan(tuple(float(d) for d in args.diameters.split(",")), args.presses, sensor.shape,
                            sensor.mm_per_px, sensor.max_indentation_mm, sensor.background_frames)
-        collect_calibration(args.out, cap, plan)
+        collect_calibration(args.out, lambda: source.read().bgr, plan)
     finally:
-        cap.release()
+        source.close()
     return 0
 
 
@@ -148,7 +146,8 @@ def register(sub) -> None:
 
     cp = csub.add_parser("collect", help="guided capture of a calibration set from a live sensor")
     cp.add_argument("--out", required=True, help="new calibration folder")
-    cp.add_argument("--camera", type=int, default=0, help="OpenCV camera index")
+    cp.add_argument("--camera", default="",
+                    help="camera index, or part of its V4L2 name (default: the sensor's name)")
     cp.add_argument("--diameters", default="6.31", help="ball diameters in mm, comma-separated")
     cp.add_argument("--presses", type=int, default=40, help="presses per ball")
     _common(cp, threads=False)

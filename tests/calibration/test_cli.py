@@ -47,3 +47,45 @@ def test_heldout_needs_matching_data(synthetic_calib, mini_data, capsys):
     ref = mini_data / "reference_model" / "nnmodel.pth"
     assert main(["calibrate", "evaluate", str(synthetic_calib), "--model", str(ref), "--presses", "heldout"]) == 2
     assert "not trained on" in capsys.readouterr().err
+
+
+def test_collect_with_a_fake_sensor(tmp_path, monkeypatch):
+    """``calibrate collect`` through the io camera source: raw frames are cropped to the
+    working image, the folder it writes labels cleanly."""
+    import numpy as np
+
+    import tactile_slam.io.camera as camera
+    from tactile_slam.calibration.catalog import load_calibration_set
+    from tactile_slam.calibration.labels import label_presses
+
+    from .conftest import MM_PER_PX, press_image, render, synthetic_background
+
+    bg = synthetic_background()
+    working = [render(bg, np.zeros((240, 320, 2)), seed=i) for i in range(10)]
+    working.append(press_image(150, 110, 25, 6.31, seed=11))
+
+    class FakeCapture:
+        def __init__(self):
+            self.frames = list(working)
+
+        def isOpened(self):
+            return True
+
+        def set(self, prop, value):
+            return True
+
+        def read(self):
+            raw = np.zeros((336, 448, 3), np.uint8)  # crops to rows 48:288, cols 64:384
+            raw[48:288, 64:384] = self.frames.pop(0)
+            return True, raw
+
+        def release(self):
+            pass
+
+    monkeypatch.setattr(camera, "open_cv_capture", lambda index: FakeCapture())
+    monkeypatch.setattr("builtins.input", lambda message="": "")
+    out = tmp_path / "new"
+    assert main(["calibrate", "collect", "--out", str(out), "--camera", "0", "--presses", "1"]) == 0
+    calib = load_calibration_set(out, (240, 320))
+    (lb,) = label_presses(calib, MM_PER_PX, 2.0)
+    assert abs(lb.cx - 150) < 1 and abs(lb.cy - 110) < 1 and abs(lb.radius - 25) < 1.5

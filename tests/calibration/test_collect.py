@@ -2,22 +2,23 @@ import numpy as np
 import pytest
 
 from tactile_slam.calibration.catalog import CalibrationDataError, load_calibration_set
-from tactile_slam.calibration.collect import CollectPlan, collect_calibration, crop_resize
+from tactile_slam.calibration.collect import CollectPlan, collect_calibration
 from tactile_slam.calibration.labels import label_presses
 
 from .conftest import MM_PER_PX, press_image, render, synthetic_background
 
 
 class FakeCamera:
-    """Serves frames from a list; the background frames first, then one frame per press."""
+    """Serves frames from a list (background frames first, then one per press), then
+    fails like a disconnected sensor."""
 
     def __init__(self, frames):
         self.frames = list(frames)
 
-    def read(self):
+    def __call__(self):
         if not self.frames:
-            return False, None
-        return True, self.frames.pop(0)
+            raise ValueError("read failed (sensor disconnected?)")
+        return self.frames.pop(0)
 
 
 def _plan(**kw):
@@ -65,18 +66,12 @@ def test_quit_and_errors(tmp_path):
     flat = [render(bg, np.zeros((240, 320, 2)), seed=i) for i in range(3)]
     with pytest.raises(CalibrationDataError, match="no press was recorded"):
         collect_calibration(tmp_path / "a", FakeCamera(flat), _plan(), prompt=lambda m: "q", say=lambda m: None)
-    with pytest.raises(CalibrationDataError, match="no frame"):
+    with pytest.raises(ValueError, match="disconnected"):
         collect_calibration(tmp_path / "b", FakeCamera([]), _plan(), prompt=lambda m: "", say=lambda m: None)
+    with pytest.raises(CalibrationDataError, match="must be BGR"):
+        collect_calibration(tmp_path / "e", FakeCamera([np.zeros((10, 10, 3), np.uint8)]), _plan(),
+                            prompt=lambda m: "", say=lambda m: None)
     (tmp_path / "d").mkdir()
     (tmp_path / "d" / "catalog.csv").write_text("x")
     with pytest.raises(CalibrationDataError, match="already holds"):
         collect_calibration(tmp_path / "d", FakeCamera(flat), _plan(), prompt=lambda m: "", say=lambda m: None)
-
-
-def test_crop_resize():
-    raw = np.zeros((2464, 3280, 3), np.uint8)
-    raw[2464 // 2, 3280 // 2] = 255
-    out = crop_resize(raw, (240, 320))
-    assert out.shape == (240, 320, 3)
-    same = np.ones((240, 320, 3), np.uint8)
-    assert crop_resize(same, (240, 320)) is same
