@@ -32,10 +32,12 @@ def register(sub) -> None:
     p.add_argument("--out", default=None, help="output folder (default: RUN_DIR)")
     p.add_argument("--no-recon", action="store_true", help="skip reconstruction metrics")
     p.add_argument("--touches", type=int, default=100, help="NCD touches")
+    p.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh (Chamfer, F-score)")
     p.set_defaults(func=run)
 
 
-def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, touches: int = 100) -> tuple[dict, dict]:
+def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, touches: int = 100,
+                 samples: int = 100_000) -> tuple[dict, dict]:
     """Metrics of a run against an episode.
 
     Returns:
@@ -69,7 +71,8 @@ def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, to
 
         gt_mesh = ep.mesh()
         metrics["reconstruction"] = {
-            name: recon_report(read_mesh(run_dir / name), gt_mesh, ep.object_T_sensor[ref], n_touches=touches)
+            name: recon_report(read_mesh(run_dir / name), gt_mesh, ep.object_T_sensor[ref], n_samples=samples,
+                               n_touches=touches)
             for name in meshes}
     errors = per_axis_errors(est, gt)
     errors[~frames] = np.nan
@@ -101,7 +104,8 @@ def plot_errors(path: Path, frames: np.ndarray, errors: np.ndarray, fps: float, 
 
 
 def run(args) -> int:
-    metrics, series = evaluate_run(args.run_dir, args.gt, recon=not args.no_recon, touches=args.touches)
+    metrics, series = evaluate_run(args.run_dir, args.gt, recon=not args.no_recon, touches=args.touches,
+                                   samples=args.samples)
     out = Path(args.out) if args.out else Path(args.run_dir)
     out.mkdir(parents=True, exist_ok=True)
     (out / "metrics.json").write_text(json.dumps(metrics, indent=2))

@@ -38,3 +38,21 @@ def test_eval_cli_errors(episode, tmp_path):
     assert main(["eval", str(tmp_path), "--gt", str(episode)]) == 2  # no poses.npy
     np.save(tmp_path / "poses.npy", np.tile(np.eye(4), (5, 1, 1)))
     assert main(["eval", str(tmp_path), "--gt", str(episode)]) == 2  # wrong length
+
+
+def test_eval_cli_scores_reconstruction_in_reference_frame(episode, tmp_path):
+    import open3d as o3d
+
+    gt = np.load(episode / "gt_poses.npy")
+    est = relative_to(gt, 10)
+    est[:10] = np.nan
+    np.save(tmp_path / "poses.npy", est)
+    mesh = o3d.io.read_triangle_mesh(str(episode / "object.ply"))
+    mesh.transform(np.linalg.inv(gt[10]))  # the object in the reference sensor frame
+    o3d.io.write_triangle_mesh(str(tmp_path / "mesh.ply"), mesh)
+    assert main(["eval", str(tmp_path), "--gt", str(episode), "--touches", "4", "--samples", "20000"]) == 0
+    rec = json.loads((tmp_path / "metrics.json").read_text())["reconstruction"]
+    assert list(rec) == ["mesh.ply"]
+    assert rec["mesh.ply"]["gt_pose"]["chamfer_mm"] < 1e-3
+    assert rec["mesh.ply"]["gt_pose"]["ncd"] == pytest.approx(1.0, abs=1e-5)
+    assert rec["mesh.ply"]["icp"]["chamfer_mm"] < 1e-3
