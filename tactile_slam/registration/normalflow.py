@@ -333,7 +333,8 @@ def register_prepared(
     T = torch.eye(4, dtype=torch.float64, device=dev).repeat(b, 1, 1)
     T[:, :3, :3] = st.rot
     T[:, :2, 3] = st.txy
-    maps = (tar.height.to(device=dev, dtype=dt).unsqueeze(1), tar.curvature.to(device=dev, dtype=dt).unsqueeze(1), c_map)
+    h_map = tar.height.to(device=dev, dtype=dt).unsqueeze(1)
+    maps = (h_map, tar.curvature.to(device=dev, dtype=dt).unsqueeze(1), c_map)
     return _finish(prep, points, valid, maps, T, st, config, scale)
 
 
