@@ -1,4 +1,5 @@
-"""Pictures of frame geometry (height, normals, contact, curvature) as BGR uint8 images."""
+"""Pictures: frame geometry (height, normals, contact, curvature) as BGR uint8 images, and
+trajectory reports."""
 
 from __future__ import annotations
 
@@ -45,3 +46,37 @@ def frame_panel(frame: Frame, i: int = 0, bgr: np.ndarray | None = None) -> np.n
         top = [_label(bgr, "input")] + top
         bottom = [np.zeros_like(bgr)] + bottom
     return np.vstack([np.hstack(top), np.hstack(bottom)])
+
+
+def trajectory_report(path, frames: np.ndarray, est: np.ndarray, gt: np.ndarray, fps: float, title: str) -> None:
+    """PNG: estimated vs ground-truth translation and rotation over time, and the error.
+
+    Args:
+        frames: ``(N,)`` video indices.
+        est, gt: ``(N, 6)`` per-axis pose vectors (x, y, z in mm; rx, ry, rz in degrees),
+            NaN where there is no estimate.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    t = np.asarray(frames) / fps
+    names = ["x", "y", "z", "rx", "ry", "rz"]
+    fig, axes = plt.subplots(3, 1, figsize=(10, 8), sharex=True)
+    for i, name in enumerate(names):
+        ax = axes[0] if i < 3 else axes[1]
+        line = ax.plot(t, gt[:, i], lw=2.0, alpha=0.35)[0]
+        ax.plot(t, est[:, i], lw=0.9, color=line.get_color(), label=name)
+        axes[2].plot(t, np.abs(est[:, i] - gt[:, i]), lw=0.8, label=f"{name} ({'mm' if i < 3 else 'deg'})")
+    axes[0].set_ylabel("translation (mm)")
+    axes[1].set_ylabel("rotation (deg)")
+    axes[2].set_ylabel("|error|")
+    axes[2].set_xlabel("time (s)")
+    axes[0].set_title(f"{title}\nthin: estimate, thick: ground truth")
+    for ax in axes:
+        ax.legend(loc="upper left", fontsize=8, ncol=6)
+        ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
