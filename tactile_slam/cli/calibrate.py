@@ -96,7 +96,7 @@ def _collect(args) -> int:
     try:
         plan = CollectPlan(tuple(float(d) for d in args.diameters.split(",")), args.presses, sensor.shape,
                            sensor.mm_per_px, sensor.max_indentation_mm, sensor.background_frames)
-        collect_calibration(args.out, lambda: source.read().bgr, plan)
+        collect_calibration(args.out, lambda: source.read().bgr, plan, prompt=input, say=print)
     finally:
         source.close()
     return 0
