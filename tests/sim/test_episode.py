@@ -8,7 +8,6 @@ from tactile_slam.calibration.colour_model import ColourModel
 from tactile_slam.cli.main import main
 from tactile_slam.sim.episode import (EpisodeError, SimulationSettings, compose_images, read_episode,
                                       simulate_episode, synthetic_background)
-from tactile_slam.sim.objects import make_object
 from tactile_slam.sim.renderer import GelRenderer
 
 
