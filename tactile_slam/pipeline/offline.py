@@ -24,7 +24,8 @@ from tactile_slam.io.dataset import FrameBatch, iter_batches
 from tactile_slam.io.frames import FrameSource
 from tactile_slam.io.scan import check_background, mean_background
 from tactile_slam.pipeline.odometry import OdometryMap
-from tactile_slam.pipeline.outputs import frame_poses, main_group_poses, write_json, write_tum
+from tactile_slam.eval.trajectory import write_tum
+from tactile_slam.pipeline.outputs import frame_poses, main_group_poses, write_json
 from tactile_slam.pipeline.visualizer import NullVisualizer
 from tactile_slam.recon import ReconError, TriMesh, reconstruct
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
@@ -229,7 +230,7 @@ class OfflinePipeline:
         np.save(out / "poses.npy", poses)
         np.save(out / "poses_by_group.npy", by_group)
         np.save(out / "frame_group.npy", groups)
-        write_tum(out / "trajectory_tum.txt", poses, np.arange(t) / fps)
+        write_tum(out / "trajectory_tum.txt", np.arange(t) / fps, poses)
         write_json(out / "keyframes.json", [
             {"id": k.id, "video_index": k.video_index, "session": k.session, "group": group_of_kf[k.id],
              "new_session": k.new_session, "pose": start_T_kf[k.id].tolist()}

@@ -21,7 +21,6 @@ from typing import Any
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
 
 def frame_poses(
@@ -69,17 +68,6 @@ def main_group_poses(poses_by_group: np.ndarray, frame_group: np.ndarray) -> np.
         sel = frame_group == frame_group[contact[0]]
         out[sel] = poses_by_group[sel]
     return out
-
-
-def write_tum(path: Path, poses: np.ndarray, timestamps: np.ndarray) -> None:
-    """TUM lines ``t tx ty tz qx qy qz qw`` for the finite rows of ``poses``."""
-    ok = np.isfinite(poses).all(axis=(1, 2))
-    lines = []
-    if ok.any():
-        q = Rotation.from_matrix(poses[ok, :3, :3]).as_quat()  # x y z w
-        for ts, p, qq in zip(timestamps[ok], poses[ok], q):
-            lines.append(" ".join(f"{v:.9f}" for v in (ts, *p[:3, 3], *qq)))
-    path.write_text("\n".join(lines) + ("\n" if lines else ""))
 
 
 def write_json(path: Path, data: Any) -> None:
