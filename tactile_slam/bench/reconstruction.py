@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from tactile_slam.bench.common import write_json
 from tactile_slam.config import Config
-from tactile_slam.eval.recon_metrics import recon_report
+from tactile_slam.eval.recon_metrics import recon_report, touch_poses
 from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.recon import reconstruct
 from tactile_slam.sim.motions import make_motion
@@ -40,6 +40,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--touches", type=int, default=100, help="NCD touches")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--partial", action="store_true", help="trim the Poisson mesh (watertight=False)")
+    parser.add_argument("--timing", type=int, default=0, metavar="N",
+                        help="instead: time fusion + meshing of N touches spread over a 120 mm lime")
     parser.add_argument("--noise", type=float, nargs=2, default=[0.0, 0.0], metavar=("MM", "DEG"),
                         help="perturb keyframe poses by Gaussian noise (std per axis) to mimic estimated poses")
 
@@ -85,9 +87,39 @@ def perturb(o_T_s: np.ndarray, noise_mm: float, noise_deg: float, seed: int) -> 
     return out
 
 
+def timing_run(n_touches: int, seed: int, config: Config) -> dict:
+    """Fusion + meshing time for ``n_touches`` shallow presses (0.3 mm) at farthest-point
+    locations of a 120 mm lime: large enough that most touches stay coverage keyframes."""
+    gt = make_object("lime", 120.0, seed)
+    renderer = GelRenderer(gt, config)
+    o_T_s = touch_poses(gt, n_touches, depth_mm=0.3, seed=seed, config=config, renderer=renderer)
+    builder = FrameBuilder(config)
+    kfs, poses = [], []
+    for a in range(0, len(o_T_s), 32):
+        maps = renderer.render(o_T_s[a:a + 32])
+        for j in range(len(maps.contact)):
+            if bool(maps.contact[j].any()):
+                frame = builder.from_gradients(maps.gradients[j:j + 1], contact=maps.contact[j:j + 1])
+                kfs.append(Keyframe(id=len(kfs), session=0, frame=frame, new_session=not kfs,
+                                    prev_T_kf=torch.eye(4, dtype=torch.float64)))
+                poses.append(o_T_s[a + j])
+    o_T_s = np.stack(poses)
+    t0 = time.perf_counter()
+    res = reconstruct(kfs, torch.from_numpy(np.linalg.inv(o_T_s[0]) @ o_T_s), config)
+    total = time.perf_counter() - t0
+    out = {"touches": n_touches, "keyframes": len(kfs), "total_s": total, "stats": res.stats}
+    print(f"timing: {len(kfs)} keyframes, {res.stats['coverage_keyframes']} coverage keyframes: coverage "
+          f"{res.stats['coverage_s']:.1f} s, fusion {res.stats['fusion_s']:.1f} s, meshing "
+          f"{res.stats['meshing_s']:.1f} s, total {total:.1f} s", flush=True)
+    return out
+
+
 def run(args):
     config = Config()
     config.recon.watertight = not args.partial
+    if args.timing:
+        return write_json(args.out, "reconstruction", {"settings": vars(args) | {"func": None},
+                                                       "timing": timing_run(args.timing, args.seed, config)})
     results = []
     for name in args.objects:
         for size_label in args.sizes:
