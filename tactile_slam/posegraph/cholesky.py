@@ -14,7 +14,8 @@ BLAS, so a 5,000-keyframe scan takes seconds per factorisation. Here instead:
   original blocks plus its children's Schur complements (extend-add), factorised with LAPACK
   (``L11 = chol(F11)``, ``L21 = F21 L11^-T``), and passes ``F22 - L21 L21^T`` to its parent.
 
-Fronts are numpy float64 arrays; all heavy work is BLAS-3.
+Fronts are float64 torch tensors (torch's LAPACK follows ``torch.set_num_threads``, which the
+solver pins to one thread); all heavy work is BLAS-3.
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg as sla
+import torch
 
 
 class FactorError(ValueError):
@@ -34,9 +35,9 @@ class _Front:
     piv: np.ndarray          # pivot nodes, in elimination order
     bnd: np.ndarray          # boundary nodes (later in the order), sorted by position
     children: list[int]
-    flat_pos: np.ndarray     # positions in the flattened front of the assembled block entries
-    flat_src: np.ndarray     # matching positions in the flattened (S, b, b) block array
-    child_maps: list[np.ndarray]  # per child: scalar rows of its boundary inside this front
+    flat_pos: torch.Tensor   # positions in the flattened front of the assembled block entries
+    flat_src: torch.Tensor   # matching positions in the flattened (S, b, b) block array
+    child_maps: list[torch.Tensor]  # per child: scalar rows of its boundary inside this front
 
 
 def _vertex_cover(ea: np.ndarray, eb: np.ndarray, n: int) -> np.ndarray:
@@ -154,14 +155,14 @@ class BlockCholesky:
             r, c = loc[slot_row[s]], loc[slot_col[s]]
             rows = (block * r)[:, None, None] + e[None, :, None]
             cols = (block * c)[:, None, None] + e[None, None, :]
-            fr.flat_pos = (rows * m + cols).reshape(-1)
-            fr.flat_src = (s[:, None] * block * block + np.arange(block * block)[None, :]).reshape(-1)
+            fr.flat_pos = torch.from_numpy((rows * m + cols).reshape(-1))
+            fr.flat_src = torch.from_numpy((s[:, None] * block * block + np.arange(block * block)[None, :]).reshape(-1))
             for ch in fr.children:
                 cb = self.fronts[ch].bnd
-                fr.child_maps.append(((block * loc[cb])[:, None] + e[None, :]).reshape(-1))
+                fr.child_maps.append(torch.from_numpy(((block * loc[cb])[:, None] + e[None, :]).reshape(-1)))
             loc[idx] = -1
-        self._L11: list[np.ndarray] = []
-        self._L21: list[np.ndarray] = []
+        self._L11: list[torch.Tensor] = []
+        self._L21: list[torch.Tensor] = []
 
     @property
     def max_front(self) -> int:
@@ -173,52 +174,50 @@ class BlockCholesky:
 
         Raises :class:`FactorError` if a pivot block is not positive definite.
         """
-        flat = np.ascontiguousarray(blocks, dtype=np.float64).reshape(-1)
+        flat = torch.from_numpy(np.ascontiguousarray(blocks, dtype=np.float64).reshape(-1))
         b = self.b
-        updates: list[np.ndarray | None] = [None] * len(self.fronts)
+        updates: list[torch.Tensor | None] = [None] * len(self.fronts)
         self._L11, self._L21 = [], []
         for f, fr in enumerate(self.fronts):
             k = b * fr.piv.size
             m = k + b * fr.bnd.size
-            F = np.zeros(m * m)
+            F = torch.zeros(m * m, dtype=torch.float64)
             F[fr.flat_pos] = flat[fr.flat_src]
             F = F.reshape(m, m)
             for ch, cmap in zip(fr.children, fr.child_maps):
                 U = updates[ch]
-                if U is not None and U.size:
-                    F[np.ix_(cmap, cmap)] += U
+                if U is not None and U.numel():
+                    F[cmap[:, None], cmap[None, :]] += U
                 updates[ch] = None
             if k == 0:
-                self._L11.append(np.zeros((0, 0)))
-                self._L21.append(np.zeros((m, 0)))
+                self._L11.append(torch.zeros(0, 0, dtype=torch.float64))
+                self._L21.append(torch.zeros(m, 0, dtype=torch.float64))
                 updates[f] = F
                 continue
-            try:
-                L11 = sla.cholesky(F[:k, :k], lower=True, check_finite=False)
-            except np.linalg.LinAlgError:
-                raise FactorError("normal matrix is not positive definite (unanchored poses?)") from None
-            L21 = sla.solve_triangular(L11, F[k:, :k].T, lower=True, check_finite=False).T
+            L11, info = torch.linalg.cholesky_ex(F[:k, :k])
+            if int(info) != 0:
+                raise FactorError("normal matrix is not positive definite (unanchored poses?)")
+            L21 = torch.linalg.solve_triangular(L11.mT, F[k:, :k], upper=True, left=False)
             self._L11.append(L11)
             self._L21.append(L21)
-            updates[f] = F[k:, k:] - L21 @ L21.T if m > k else None
+            updates[f] = F[k:, k:] - L21 @ L21.mT if m > k else None
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Solve ``A x = rhs`` with the last factorisation; ``rhs`` ``(n * b,)``."""
         b = self.b
-        y = np.array(rhs, dtype=np.float64).reshape(self.n, b)
+        y = torch.tensor(np.asarray(rhs, dtype=np.float64)).reshape(self.n, b)
         for fr, L11, L21 in zip(self.fronts, self._L11, self._L21):
             if fr.piv.size == 0:
                 continue
-            yp = sla.solve_triangular(L11, y[fr.piv].reshape(-1), lower=True, check_finite=False)
+            yp = torch.linalg.solve_triangular(L11, y[fr.piv].reshape(-1, 1), upper=False)
             y[fr.piv] = yp.reshape(-1, b)
             if fr.bnd.size:
                 y[fr.bnd] -= (L21 @ yp).reshape(-1, b)
         for fr, L11, L21 in zip(reversed(self.fronts), reversed(self._L11), reversed(self._L21)):
             if fr.piv.size == 0:
                 continue
-            rhs_p = y[fr.piv].reshape(-1)
+            rhs_p = y[fr.piv].reshape(-1, 1)
             if fr.bnd.size:
-                rhs_p = rhs_p - L21.T @ y[fr.bnd].reshape(-1)
-            y[fr.piv] = sla.solve_triangular(L11, rhs_p, lower=True, trans="T",
-                                             check_finite=False).reshape(-1, b)
-        return y.reshape(-1)
+                rhs_p = rhs_p - L21.mT @ y[fr.bnd].reshape(-1, 1)
+            y[fr.piv] = torch.linalg.solve_triangular(L11.mT, rhs_p, upper=True).reshape(-1, b)
+        return y.reshape(-1).numpy()

@@ -28,7 +28,7 @@ import torch
 from tactile_slam.config import PoseGraphConfig
 from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
-from tactile_slam.posegraph.solver import SolveReport, _Problem, solve
+from tactile_slam.posegraph.solver import SolveReport, _Problem, single_threaded_torch, solve
 
 
 @dataclass
@@ -70,6 +70,10 @@ class IncrementalSolver:
 
     def update(self) -> UpdateReport:
         """Bring the estimate up to date with the factors added since the last call."""
+        with single_threaded_torch():
+            return self._update()
+
+    def _update(self) -> UpdateReport:
         t0 = time.perf_counter()
         g, cfg = self.graph, self.config
         report = UpdateReport()

@@ -19,6 +19,8 @@ priors are always plain least squares (known inliers).
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -226,6 +228,22 @@ def _levenberg_marquardt(prob: _Problem, X: torch.Tensor, config: PoseGraphConfi
     return X, it, cost0, cost, converged
 
 
+@contextmanager
+def single_threaded_torch() -> Iterator[None]:
+    """Run torch intra-op work on one thread inside the block, then restore the setting.
+
+    The solver's tensors are small (6x6 blocks, thousands of edges); OpenMP parallel regions
+    only add synchronisation, and on a busy machine a descheduled worker stalls each one:
+    a 60-keyframe incremental replay took 108 s with 2 threads and 3 s with 1 under load.
+    """
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
+
+
 def solve(graph: PoseGraph, config: PoseGraphConfig | None = None,
           rows: torch.Tensor | None = None, max_iters: int | None = None) -> SolveReport:
     """Optimise the poses of ``graph`` in place and report what happened.
@@ -240,6 +258,12 @@ def solve(graph: PoseGraph, config: PoseGraphConfig | None = None,
     Raises :class:`SolverError` when a connected group of variables has no prior and no fixed
     neighbour, and :class:`GraphError` for an unknown robust mode.
     """
+    with single_threaded_torch():
+        return _solve(graph, config, rows, max_iters)
+
+
+def _solve(graph: PoseGraph, config: PoseGraphConfig | None, rows: torch.Tensor | None,
+           max_iters: int | None) -> SolveReport:
     t0 = time.perf_counter()
     config = config or PoseGraphConfig()
     if config.robust not in ROBUST_MODES:

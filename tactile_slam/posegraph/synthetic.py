@@ -148,3 +148,31 @@ def synthetic_scan(n_keyframes: int, n_loops: int, n_sessions: int = 1, seed: in
     same = session[loops[:, 0]] == session[loops[:, 1]]
     g.add_betweens(loops[same, 0].tolist(), loops[same, 1].tolist(), loop_Z[same], kind="loop")
     return SyntheticScan(g, gt, session, loops, loop_Z)
+
+
+@dataclass
+class KeyframeStep:
+    """What arrives with keyframe ``t`` when a scan is replayed in order.
+
+    Attributes:
+        t: keyframe id.
+        odometry: ``(4, 4)`` ``(t-1)_T_t``, or None for a session head (which gets a prior).
+        loops: ``[(r, r_T_t)]`` loop measurements ending at ``t`` that are in the scan's graph.
+    """
+
+    t: int
+    odometry: torch.Tensor | None
+    loops: list[tuple[int, torch.Tensor]]
+
+
+def replay_steps(scan: SyntheticScan) -> list[KeyframeStep]:
+    """The scan's factors grouped by the keyframe at which they become available."""
+    e = scan.graph.edges
+    steps = [KeyframeStep(t, None, []) for t in range(scan.graph.num_nodes)]
+    for k in range(e.i.numel()):
+        i, j = int(e.i[k]), int(e.j[k])
+        if bool(e.loop[k]):
+            steps[j].loops.append((i, e.Z[k]))
+        else:
+            steps[j].odometry = e.Z[k]
+    return steps

@@ -1,0 +1,161 @@
+"""Sparse LM on synthetic graphs: ground truth, pypose.optim.LM, robust modes, degenerate inputs."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+
+import pytest
+import torch
+
+from tactile_slam.config import PoseGraphConfig
+from tactile_slam.posegraph import se3
+from tactile_slam.posegraph.graph import GraphError, PoseGraph
+from tactile_slam.posegraph.reference import solve_pypose
+from tactile_slam.posegraph.solver import SolverError, solve
+from tactile_slam.posegraph.synthetic import synthetic_scan
+
+
+def _trans_err_mm(P: torch.Tensor, gt: torch.Tensor) -> float:
+    """Mean translation error (mm) after expressing both in the frame of node 0."""
+    P = se3.inverse(P[0]) @ P
+    return float((P[:, :3, 3] - gt[:, :3, 3]).norm(dim=-1).mean() * 1e3)
+
+
+def _rot_err_rad(P: torch.Tensor, gt: torch.Tensor) -> float:
+    P = se3.inverse(P[0]) @ P
+    return float(se3.log(se3.inverse(gt) @ P)[:, 3:].norm(dim=-1).mean())
+
+
+@pytest.fixture(scope="module")
+def scan():
+    return synthetic_scan(150, 150, seed=5, radius_m=0.006)
+
+
+class TestAccuracy:
+    def test_recovers_ground_truth_better_than_odometry(self, scan):
+        g = copy.deepcopy(scan.graph)
+        odo_t, odo_r = _trans_err_mm(g.poses(), scan.gt), _rot_err_rad(g.poses(), scan.gt)
+        rep = solve(g)
+        assert rep.converged and rep.cost_final < rep.cost_initial
+        assert rep.n_variables == 150 and rep.n_factors == g.num_edges + 1
+        t, r = _trans_err_mm(g.poses(), scan.gt), _rot_err_rad(g.poses(), scan.gt)
+        assert t < 0.5 * odo_t and r < 0.5 * odo_r
+        # at the optimum the gradient vanishes: a second solve does not move
+        before = g.poses()
+        rep2 = solve(g)
+        assert rep2.iterations <= 1
+        assert torch.allclose(g.poses(), before, atol=1e-9)
+
+    def test_exact_measurements_give_exact_poses(self):
+        s = synthetic_scan(80, 60, seed=1, radius_m=0.005, odometry_sigma=(0.0, 0.0),
+                           loop_sigma=(0.0, 0.0))
+        g = s.graph
+        g.set_poses(torch.arange(80), g.poses() @ se3.exp(torch.randn(80, 6, dtype=torch.float64) * 1e-3))
+        g.set_poses(torch.tensor([0]), torch.eye(4, dtype=torch.float64)[None])
+        solve(g)
+        assert torch.allclose(g.poses(), s.gt, atol=1e-9)
+
+    @pytest.mark.parametrize("seed", [0, 1])
+    def test_agrees_with_pypose_lm(self, seed):
+        s = synthetic_scan(15, 8, seed=seed, radius_m=0.003, coverage_spacing_m=0.0)
+        g1, g2 = s.graph, copy.deepcopy(s.graph)
+        rep = solve(g1)
+        ref = solve_pypose(g2)
+        assert rep.cost_final == pytest.approx(ref["cost_final"], rel=1e-6)
+        assert torch.allclose(g1.poses(), g2.poses(), atol=1e-8)
+
+
+class TestStructure:
+    def test_one_node(self):
+        g = PoseGraph()
+        g.add_node(3, se3.exp(torch.tensor([1e-3, 0, 0, 0, 0.2, 0], dtype=torch.float64)))
+        g.add_prior(3)
+        rep = solve(g)
+        assert rep.converged
+        assert torch.allclose(g.pose(3), torch.eye(4, dtype=torch.float64), atol=1e-12)
+
+    def test_empty_graph(self):
+        rep = solve(PoseGraph())
+        assert rep.n_variables == 0 and rep.iterations == 0
+
+    def test_disconnected_groups_each_with_prior(self):
+        s = synthetic_scan(120, 60, n_sessions=3, seed=2, radius_m=0.005)
+        g = s.graph
+        solve(g)
+        for k in range(3):
+            ids = torch.nonzero(s.session == k).flatten()
+            P = g.poses(ids.tolist())
+            gt = se3.inverse(s.gt[ids[0]]) @ s.gt[ids]
+            assert torch.allclose(P[0], torch.eye(4, dtype=torch.float64), atol=1e-6)
+            assert _trans_err_mm(P, gt) < 0.2
+
+    def test_group_without_prior_raises(self):
+        g = PoseGraph()
+        g.add_nodes([0, 1, 2, 3], torch.eye(4, dtype=torch.float64).expand(4, 4, 4))
+        g.add_prior(0)
+        g.add_between(0, 1, torch.eye(4))
+        g.add_between(2, 3, torch.eye(4))
+        with pytest.raises(SolverError, match="no prior"):
+            solve(g)
+
+    def test_subset_holds_others_fixed(self, scan):
+        g = copy.deepcopy(scan.graph)
+        before = g.poses()
+        rows = torch.arange(50, 100)
+        rep = solve(g, rows=rows)
+        after = g.poses()
+        assert rep.n_variables == 50
+        mask = torch.ones(150, dtype=torch.bool)
+        mask[rows] = False
+        assert torch.equal(after[mask], before[mask])
+        assert not torch.allclose(after[rows], before[rows])
+
+    def test_unknown_robust_mode(self, scan):
+        with pytest.raises(GraphError, match="robust"):
+            solve(copy.deepcopy(scan.graph), PoseGraphConfig(robust="tukey"))
+
+    def test_nan_initial_pose(self):
+        g = PoseGraph()
+        g.add_node(0)
+        g.add_prior(0)
+        g.set_poses(torch.tensor([0]), torch.full((1, 4, 4), float("nan"), dtype=torch.float64))
+        with pytest.raises(SolverError, match="NaN"):
+            solve(g)
+
+
+@pytest.fixture(scope="module")
+def outlier_scan():
+    """A scan with one wrong loop (0.3 rad, 2.2 mm off) added; returns (scan, edge index)."""
+    s = synthetic_scan(80, 70, seed=7, radius_m=0.005)
+    g = s.graph
+    wrong = s.gt[[20]].inverse() @ s.gt[[70]] @ se3.exp(
+        torch.tensor([[2e-3, -1e-3, 0.0, 0.0, 0.0, 0.3]], dtype=torch.float64))
+    bad = g.add_between(20, 70, wrong[0], kind="loop")
+    return s, bad
+
+
+class TestRobust:
+    def test_gnc_rejects_outlier_loop(self, outlier_scan):
+        s, bad = outlier_scan
+        g_plain, g_gnc = copy.deepcopy(s.graph), copy.deepcopy(s.graph)
+        solve(g_plain)
+        rep = solve(g_gnc, PoseGraphConfig(robust="gnc"))
+        assert bad in rep.rejected_loops
+        assert len(rep.rejected_loops) <= 2  # valid loops are (almost) all kept
+        assert rep.loop_weights[bad] == 0.0
+        assert _trans_err_mm(g_gnc.poses(), s.gt) < 0.5 * _trans_err_mm(g_plain.poses(), s.gt)
+
+    @pytest.mark.parametrize("kernel", ["huber", "cauchy"])
+    def test_kernels_downweight_outlier(self, outlier_scan, kernel):
+        s, bad = outlier_scan
+        g_plain, g_rob = copy.deepcopy(s.graph), copy.deepcopy(s.graph)
+        solve(g_plain)
+        rep = solve(g_rob, PoseGraphConfig(robust=kernel))
+        assert rep.loop_weights[bad] < 0.2
+        assert _trans_err_mm(g_rob.poses(), s.gt) < _trans_err_mm(g_plain.poses(), s.gt)
+
+    def test_odometry_never_downweighted(self, outlier_scan):
+        s, _ = outlier_scan
+        rep = solve(copy.deepcopy(s.graph), dataclasses.replace(PoseGraphConfig(), robust="cauchy"))
+        assert (rep.loop_weights[~s.graph.edges.loop] == 1.0).all()
