@@ -85,8 +85,12 @@ class BackEnd:
         return dict(zip(ids, poses))
 
     # ------------------------------------------------------------------ step
-    def add(self, kf: Keyframe) -> list[Loop]:
-        """Process one keyframe; returns the loops accepted for it."""
+    def add(self, kf: Keyframe, detect: bool = True) -> list[Loop]:
+        """Process one keyframe; returns the loops accepted for it.
+
+        ``detect=False`` skips loop detection *for* this keyframe (online skipping,
+        method.md 6.4): it still gets its odometry factor, joins the coverage set and
+        stays a candidate for later keyframes."""
         self.keyframes[kf.id] = kf
         self.stats.keyframes += 1
         prev = self._last_in_session.get(kf.session)
@@ -101,9 +105,9 @@ class BackEnd:
         t0 = time.perf_counter()
         loops: list[Loop] = []
         if self.detector is not None:
-            eligible = [k for k in self.coverage.active if k in self.detector]
-            poses = self.start_T_kf
-            loops = self.detector.detect(kf, eligible, self.group, poses, self.keyframes)
+            if detect:
+                eligible = [k for k in self.coverage.active if k in self.detector]
+                loops = self.detector.detect(kf, eligible, self.group, self.start_T_kf, self.keyframes)
             self.detector.add(kf)
         t1 = time.perf_counter()
         self.stats.time_loop_detection.append(t1 - t0)
