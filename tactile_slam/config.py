@@ -212,7 +212,7 @@ class ReconConfig:
     min_weight: float = 0.05  # Poisson input: drop points this close to a contact edge
     voxel_mm: float = 0.05
     poisson_cell_mm: float = 0.1
-    poisson_min_depth: int = 8
+    poisson_min_depth: int = 6  # the 0.1 mm cell rule decides; 8 costs 5x for no gain (docs)
     poisson_max_depth: int = 11
     trim_density_quantile: float = 0.02
     trim_distance_mm: float = 0.5
