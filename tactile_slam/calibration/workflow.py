@@ -50,8 +50,9 @@ def run_training(
 ) -> dict[str, Any]:
     """Train a model on a calibration folder and write, under ``out_dir``:
     ``model.pt`` (with metadata), ``labels.csv``, ``overlays/``, ``training_curve.png``,
-    ``training.json``, ``evaluation.json`` (held-out errors, beside ``reference`` when
-    given) and, with ``colour_model``, ``colour_model.pt``. Returns the evaluation summary."""
+    ``training.json``, ``evaluation.json`` and ``evaluation.txt`` (held-out errors per
+    press, beside ``reference`` when given) and, with ``colour_model``, ``colour_model.pt``.
+    Returns the evaluation summary."""
     out = Path(out_dir)
     calib = load_calibration_set(calib_dir, sensor.shape)
     labels = labels_for(calib, sensor, labels_file)
@@ -97,7 +98,9 @@ def run_training(
     write_training_report(out, result, cfg, {"metrics": metrics})
     (out / "evaluation.json").write_text(json.dumps(summary, indent=2))
     if evals:
-        say(format_comparison(evals))
+        table = format_comparison(evals)
+        (out / "evaluation.txt").write_text(table + "\n")
+        say(table)
     if colour_model:
         samples = colour_samples(calib, by_dir, [p.reldir for p in calib.presses], sensor.mm_per_px)
         cm, err = fit_colour_model(samples, seed=cfg.seed, device=cfg.device)

@@ -12,7 +12,8 @@ def test_label_then_train_then_evaluate(synthetic_calib, tmp_path, capsys):
     assert len(labels) == 6 and (out / "overlays" / "overview.png").exists()
     assert main(["calibrate", "train", str(synthetic_calib), "--out", str(out / "m"), "--labels",
                  str(out / "labels.csv"), "--epochs", "2", "--hidden", "8,8", "--colour-model"]) == 0
-    for name in ("model.pt", "training_curve.png", "training.json", "evaluation.json", "colour_model.pt"):
+    for name in ("model.pt", "training_curve.png", "training.json", "evaluation.json", "evaluation.txt",
+                 "colour_model.pt"):
         assert (out / "m" / name).exists(), name
     model, meta = load_model(out / "m" / "model.pt")
     assert model.hidden == (8, 8)
