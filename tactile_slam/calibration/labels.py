@@ -146,7 +146,7 @@ def detect_contact_circle(
     dist = np.linalg.norm(cv2.GaussianBlur(diff, (0, 0), cfg.blur_sigma), axis=2).astype(np.float32)
     med = float(np.median(dist))
     spread = 1.4826 * float(np.median(np.abs(dist - med)))
-    threshold = med + cfg.noise_sigmas * max(spread, 0.5)
+    threshold = med + cfg.noise_sigmas * max(spread, 0.5)  # floor: half a grey level (noise-free images)
     changed = cv2.morphologyEx((dist > threshold).astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
     n, lab, stats, _ = cv2.connectedComponentsWithStats(changed, connectivity=8)
     min_area = 2.0 * math.pi * ball_radius_px  # contact area of a 1-px-deep press: pi * (2 R * 1)
