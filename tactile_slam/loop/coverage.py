@@ -191,7 +191,6 @@ class _Node:
     points: torch.Tensor  # (N, 3) contact points, row-major, metres, keyframe frame
     weights: torch.Tensor  # (N,) boundary weights at those points
     slot: int  # row of the set's weight and height buffers
-    radius: float  # max |point|, metres
     radius_xy: float  # max |point_xy|, metres
     start_T_kf: torch.Tensor  # (4, 4) float64
     active: bool = True
@@ -224,6 +223,8 @@ class CoverageSet:
         # after deactivation), so batched lookups gather without stacking maps.
         self._wbuf = torch.zeros(0, self.shape[0] * self.shape[1])
         self._hbuf = torch.zeros(0, self.shape[0] * self.shape[1])
+        self._pbuf = torch.zeros(0, 4, 4, dtype=torch.float64)  # start_T_kf per slot
+        self._rbuf = torch.zeros(0, 2, dtype=torch.float64)  # (radius, radius_xy) per slot
         self._free: list[int] = []
 
     # ------------------------------------------------------------------ queries
@@ -306,6 +307,8 @@ class CoverageSet:
         for kf_id, pose in poses.items():
             node = self._node(kf_id)
             node.start_T_kf = _check_pose(pose, node.start_T_kf.device)
+            if node.active:
+                self._pbuf[node.slot] = node.start_T_kf
 
     def merge(self, dominant: int, absorbed: Iterable[int]) -> None:
         """Merge groups after a loop closure (call :meth:`update_poses` first).
@@ -357,26 +360,28 @@ class CoverageSet:
         slot = self._alloc()
         self._wbuf[slot] = wmap.reshape(-1)
         self._hbuf[slot] = height.reshape(-1)
+        self._pbuf[slot] = pose
+        self._rbuf[slot, 0] = points.norm(dim=1).max().double()
+        self._rbuf[slot, 1] = points[:, :2].norm(dim=1).max().double()
         return _Node(
             id=int(keyframe.id),
             group=int(group),
             points=points,
             weights=wmap[contact],
             slot=slot,
-            radius=float(points.norm(dim=1).max()),
-            radius_xy=float(points[:, :2].norm(dim=1).max()),
+            radius_xy=float(self._rbuf[slot, 1]),
             start_T_kf=pose,
         )
 
     def _alloc(self) -> int:
         if self._wbuf.device != self.device:
-            self._wbuf = self._wbuf.to(self.device)
-            self._hbuf = self._hbuf.to(self.device)
+            self._wbuf, self._hbuf, self._pbuf, self._rbuf = (
+                b.to(self.device) for b in (self._wbuf, self._hbuf, self._pbuf, self._rbuf))
         if not self._free:
             cap = self._wbuf.shape[0]
             grow = max(cap, 8)
-            self._wbuf = torch.cat([self._wbuf, self._wbuf.new_zeros(grow, self._wbuf.shape[1])])
-            self._hbuf = torch.cat([self._hbuf, self._hbuf.new_zeros(grow, self._hbuf.shape[1])])
+            self._wbuf, self._hbuf, self._pbuf, self._rbuf = (
+                torch.cat([b, b.new_zeros(grow, *b.shape[1:])]) for b in (self._wbuf, self._hbuf, self._pbuf, self._rbuf))
             self._free = list(range(cap + grow - 1, cap - 1, -1))
         return self._free.pop()
 
@@ -411,16 +416,16 @@ class CoverageSet:
         that meet in ``node``'s image plane (an exact test, since W is 0 outside contact)."""
         if not others:
             return []
-        poses = torch.stack([o.start_T_kf for o in others])
+        slots = torch.tensor([o.slot for o in others], device=self._pbuf.device)
+        poses = self._pbuf[slots]
+        radii = self._rbuf[slots]
         t_T_o = torch.linalg.solve(node.start_T_kf, poses)  # (R, 4, 4): inv(start_T_t) start_T_o
         same_side = (poses[:, :3, 2] @ node.start_T_kf[:3, 2]) >= 0
-        radii = torch.tensor([o.radius for o in others], dtype=torch.float64, device=poses.device)
-        reach = radii + node.radius_xy + 2.0 * self.m_per_px
+        reach = radii[:, 0] + node.radius_xy + 2.0 * self.m_per_px
         near = t_T_o[:, :2, 3].norm(dim=1) <= reach
         if self.symmetric:
             o_T_t = torch.linalg.inv(t_T_o)
-            radii_xy = torch.tensor([o.radius_xy for o in others], dtype=torch.float64, device=poses.device)
-            near &= o_T_t[:, :2, 3].norm(dim=1) <= radii_xy + node.radius + 2.0 * self.m_per_px
+            near &= o_T_t[:, :2, 3].norm(dim=1) <= radii[:, 1] + self._rbuf[node.slot, 0] + 2.0 * self.m_per_px
         keep = (same_side & near).tolist()
         return [o for o, k in zip(others, keep) if k]
 
