@@ -165,6 +165,7 @@ class LoopConfig:
     ransac_threshold_px: float = 3.0
     ransac_confidence: float = 0.99
     ransac_refine_iters: int = 10
+    ambiguity_ratio: float | None = 0.5  # reject pairs whose outliers support a 2nd alignment
     max_candidates: int = 10  # keyframes matched per query when more are eligible
     retrieval_neighbours: int = 5
     retrieval_min_votes: int = 3

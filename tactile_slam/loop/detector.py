@@ -151,7 +151,7 @@ class LoopDetector:
         self.sift = SiftSettings(lc.sift_backend, lc.sift_contrast_threshold, lc.sift_octave_layers,
                                  lc.sift_max_features, config.final_erode_px)
         self.ransac = RansacSettings(lc.min_sift_inliers, lc.ransac_iterations, lc.ransac_threshold_px,
-                                     lc.ransac_confidence, lc.ransac_refine_iters)
+                                     lc.ransac_confidence, lc.ransac_refine_iters, lc.ambiguity_ratio)
         self.nf_config = replace(config.normalflow, ccs_threshold=lc.ccs_threshold, scr_threshold=lc.scr_threshold)
         self.index = DescriptorIndex(IndexSettings(lc.retrieval_neighbours, lc.retrieval_min_votes,
                                                    lc.retrieval_exact_max))

@@ -5,7 +5,10 @@ with a cross-check (the reference is the query side, no ratio test), then fits a
 similarity ``p_tar = A p_ref + m`` (rotation, uniform scale, translation) by RANSAC
 with OpenCV's partial-affine estimator and LM refinement on the inliers. The
 estimator only runs with at least ``min_inliers`` matches (degenerate input can make
-it fail), and the pair is a loop candidate only when it keeps ``min_inliers`` inliers.
+it fail), and the pair is a loop candidate only when it keeps ``min_inliers`` inliers
+and the alignment is unambiguous: a second RANSAC on the outliers must not find a
+distinct alignment with comparable support (a periodic texture, e.g. a knurl, matches
+itself shifted by whole periods; such pairs cannot be told apart from the data).
 
 ``similarity_to_se3`` lifts the 2-D model to an initial ``tar_T_ref``: a rotation about
 the sensor z axis by the similarity's rotation (scale dropped, no tilt) and the
@@ -39,6 +42,10 @@ class RansacSettings:
         threshold_px: reprojection threshold (px).
         confidence: RANSAC confidence.
         refine_iters: LM refinement iterations on the inliers.
+        ambiguity_ratio: reject the pair when a second, distinct similarity fitted to
+            the first one's outliers keeps at least this fraction of its inliers (and at
+            least ``min_inliers // 2``): the texture supports two alignments, as a
+            periodic one does. ``None`` disables the test.
     """
 
     min_inliers: int = 8
@@ -46,6 +53,7 @@ class RansacSettings:
     threshold_px: float = 3.0
     confidence: float = 0.99
     refine_iters: int = 10
+    ambiguity_ratio: float | None = 0.5
 
 
 @dataclass
@@ -57,11 +65,14 @@ class Similarity:
             pixels: ``p_tar = A p_ref + m``.
         inliers: RANSAC inlier count.
         matches: cross-checked matches it was fitted to.
+        second: inliers of the best distinct alternative fitted to the outliers (0 if
+            none was tried).
     """
 
     M: np.ndarray
     inliers: int
     matches: int
+    second: int = 0
 
 
 def _as_np(x: torch.Tensor | np.ndarray) -> np.ndarray:
@@ -109,16 +120,32 @@ def estimate_similarity(ref_xy: np.ndarray, tar_xy: np.ndarray, settings: Ransac
         raise MatchingError(f"matched points must be two (K, 2) arrays, got {ref_xy.shape} and {tar_xy.shape}")
     if len(ref_xy) < max(s.min_inliers, 2):
         return None
+    M, mask = _ransac(ref_xy, tar_xy, s)
+    if M is None:
+        return None
+    inliers = int(mask.sum())
+    if inliers < s.min_inliers:
+        return None
+    second = 0
+    floor = max(s.min_inliers // 2, 2)
+    if s.ambiguity_ratio is not None and len(ref_xy) - inliers >= floor:
+        out = ~mask
+        _, mask2 = _ransac(ref_xy[out], tar_xy[out], s)
+        second = 0 if mask2 is None else int(mask2.sum())
+        if second >= max(floor, s.ambiguity_ratio * inliers):
+            return None
+    return Similarity(M.astype(np.float64), inliers, len(ref_xy), second)
+
+
+def _ransac(ref_xy: np.ndarray, tar_xy: np.ndarray, s: RansacSettings) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """OpenCV's RANSAC similarity; ``(M (2, 3), inlier mask (K,) bool)`` or ``(None, None)``."""
     M, mask = cv2.estimateAffinePartial2D(
         ref_xy, tar_xy, method=cv2.RANSAC, ransacReprojThreshold=s.threshold_px, maxIters=s.iterations,
         confidence=s.confidence, refineIters=s.refine_iters,
     )
     if M is None or mask is None or not np.isfinite(M).all():
-        return None
-    inliers = int(mask.sum())
-    if inliers < s.min_inliers:
-        return None
-    return Similarity(M.astype(np.float64), inliers, len(ref_xy))
+        return None, None
+    return M, mask.ravel().astype(bool)
 
 
 def match(ref: Features, tar: Features, settings: RansacSettings | None = None) -> Similarity | None:

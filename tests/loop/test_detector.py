@@ -59,6 +59,17 @@ def test_finds_true_loop_with_ground_truth_pose(scene):
     assert d["ref_id"] == 0 and len(d["ref_T_tar"]) == 4
 
 
+def test_detection_on_device(scene, device):
+    """Keyframes living on ``device``: features come from the CPU, verification runs
+    on the device, and the loop is the same."""
+    moved = {i: replace(k, frame=k.frame.to(device)) for i, k in scene.items()}
+    det = _detector(moved)
+    loops = [lp for lp in det.detect(moved[2], [0, 1, 3], {}, {}, moved) if lp.ref_id == 0]
+    assert len(loops) == 1 and loops[0].ref_T_tar.device.type == "cpu"
+    rot, trans = _loop_error(loops[0], T_LOOP)
+    assert rot < 1.0 and trans < 0.3
+
+
 def test_previous_keyframe_of_same_session_is_excluded(scene):
     det = _detector(scene)
     assert det.detect(scene[1], [0], {}, {}, scene) == []  # 0 = 1 - 1, same session

@@ -92,7 +92,15 @@ def test_image_features_within_contact(textured_frame):
     assert bool(inner[f.keypoints[:, 1].round().long(), f.keypoints[:, 0].round().long()].all())
 
 
+def test_float64_curvature_gives_the_same_features(textured_frame, dtype):
+    f32 = curvature_features(textured_frame.curvature[0], textured_frame.contact[0], CLIP)
+    f = curvature_features(textured_frame.curvature[0].to(dtype), textured_frame.contact[0], CLIP)
+    torch.testing.assert_close(f.keypoints, f32.keypoints)
+    torch.testing.assert_close(f.descriptors, f32.descriptors)
+
+
 def test_kornia_backend_inside_contact(textured_frame):
+    pytest.importorskip("kornia")
     contact = textured_frame.contact[0]
     f = curvature_features(textured_frame.curvature[0], contact, CLIP, SiftSettings(backend="kornia", max_features=128))
     assert len(f) > 0 and f.descriptors.shape == (len(f), 128)

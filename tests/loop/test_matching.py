@@ -107,6 +107,21 @@ def test_too_few_matches_is_none():
     assert sim is None or sim.inliers >= 8
 
 
+def test_ambiguous_alignment_is_rejected():
+    """Matches supporting two distinct alignments (a periodic texture matched at two
+    period shifts) give no candidate; a unique alignment with outliers is kept."""
+    g = np.random.default_rng(2)
+    ref = g.random((24, 2)) * 150 + 50
+    tar = ref + np.where(np.arange(24)[:, None] % 2 == 0, [5.0, 0.0], [25.0, 0.0])
+    assert estimate_similarity(ref, tar) is None
+    sim = estimate_similarity(ref, tar, RansacSettings(ambiguity_ratio=None))
+    assert sim is not None and sim.inliers == 12
+    unique = ref + [5.0, 0.0]
+    unique[:5] = g.random((5, 2)) * 200
+    sim = estimate_similarity(ref, unique)
+    assert sim is not None and sim.inliers >= 19 and sim.second < 4
+
+
 def test_exceptions():
     with pytest.raises(MatchingError):
         match_descriptors(np.zeros((3, 128)), np.zeros((3, 64)))
