@@ -16,6 +16,7 @@ COMMAND_MODULES = (
     "tactile_slam.cli.simulate",
     "tactile_slam.cli.eval",
     "tactile_slam.cli.record",
+    "tactile_slam.cli.live",
 )
 
 

@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from tactile_slam.cli.live import add_online_arguments, online_options, report
 from tactile_slam.config import load_config
 from tactile_slam.io.dispatch import open_source
 from tactile_slam.pipeline.offline import METHODS, OfflinePipeline, RunOptions
+from tactile_slam.pipeline.online import OnlinePipeline
 from tactile_slam.pipeline.visualizer import KeyframePanels, NullVisualizer
 
 
@@ -24,6 +26,8 @@ def register(sub) -> None:
     p.add_argument("--keyframe-panels", action="store_true", help="write a geometry picture per keyframe")
     p.add_argument("--no-mesh", action="store_true", help="poses only: skip fusion and meshing")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--online", action="store_true", help="real-time replay with loop closure in parallel (see live)")
+    add_online_arguments(p)
     p.set_defaults(func=run)
 
 
@@ -33,6 +37,9 @@ def run(args) -> int:
     config = config or getattr(source, "config", None) or load_config(None)
     out = Path(args.out)
     vis = KeyframePanels(out / "keyframes") if args.keyframe_panels else NullVisualizer()
+    if args.online:
+        report(OnlinePipeline(source, config, out, online_options(args), vis).run().stats, out)
+        return 0
     options = RunOptions(method=args.method, device=args.device, model=args.model,
                          batch_size=args.batch_size, progress=not args.no_progress, mesh=not args.no_mesh)
     result = OfflinePipeline(source, config, out, options, vis).run()

@@ -166,3 +166,26 @@ class RealtimeFeed:
             self._cond.notify_all()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout=5.0)
+
+
+class LoopedSource(SequenceSource):
+    """A recording played ``length`` frames long, starting over at its end (a soak
+    test from a short scan): frame ``k`` is ``source[k % len(source)]`` with index ``k``
+    and timestamp ``k / fps``.
+
+    Raises:
+        InputError: empty source or ``length < 1``.
+    """
+
+    def __init__(self, source: SequenceSource, length: int):
+        if len(source) == 0 or length < 1:
+            raise InputError(f"cannot loop {source.name} ({len(source)} frames) to {length} frames")
+        self.source, self.length = source, int(length)
+        self.fps, self.shape, self.name = source.fps, source.shape, f"{source.name} (looped to {length} frames)"
+
+    def __len__(self) -> int:
+        return self.length
+
+    def frame(self, position: int) -> RawFrame:
+        f = self.source[position % len(self.source)]
+        return RawFrame(position, position / self.fps, f.bgr, f.gradients, f.contact)

@@ -1,0 +1,72 @@
+"""``tactile-slam live --out DIR [--camera SPEC]``: the online pipeline on a live sensor.
+
+Ctrl+C ends the run; everything computed so far is saved. The options shared with
+``tactile-slam run SCAN --online`` are defined here (:func:`add_online_arguments`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from tactile_slam.config import load_config
+from tactile_slam.io.dispatch import CAMERA_PREFIX, open_source
+from tactile_slam.pipeline.offline import METHODS
+from tactile_slam.pipeline.online import OnlineOptions, OnlinePipeline
+from tactile_slam.pipeline.visualizer import KeyframePanels, NullVisualizer
+
+
+def add_online_arguments(p) -> None:
+    """Options of the online pipeline (``live`` and ``run --online``)."""
+    p.add_argument("--rate", type=float, default=1.0,
+                   help="replay speed as a multiple of the recording's frame rate; 0: lossless, as fast as "
+                        "tracking goes (recordings only)")
+    p.add_argument("--buffer-frames", type=int, default=3, help="frames that may wait before the oldest is dropped")
+    p.add_argument("--no-skip-loops", action="store_true",
+                   help="detect loops for every keyframe even when the back end falls behind")
+    p.add_argument("--preview-every", type=float, default=None, metavar="S",
+                   help="write preview/preview.ply and preview.png at most every S seconds")
+    p.add_argument("--jsonl", default=None, help="pose events as JSON lines to this file ('-': stdout)")
+    p.add_argument("--threads", type=int, default=None, help="torch threads of the tracker (default: unchanged)")
+
+
+def online_options(args) -> OnlineOptions:
+    return OnlineOptions(
+        method=args.method, device=args.device, model=args.model, progress=not args.no_progress,
+        mesh=not args.no_mesh, rate=args.rate if args.rate > 0 else None, buffer_frames=args.buffer_frames,
+        skip_loops=not args.no_skip_loops, preview_every_s=args.preview_every, jsonl=args.jsonl,
+        tracker_threads=args.threads,
+    )
+
+
+def register(sub) -> None:
+    p = sub.add_parser("live", help="track a live sensor with loop closure in parallel (Ctrl+C saves and stops)")
+    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--camera", default="GelSight Mini", help="device index or a V4L2 name it contains")
+    p.add_argument("--config", default=None, help="YAML config (ours or GelSLAM's) or a preset name")
+    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    p.add_argument("--method", default="gelslam", choices=[m for m in METHODS if m != "gs-imagesift"])
+    p.add_argument("--model", default=None, help="calibration model file (default: the sensor's packaged model)")
+    p.add_argument("--keyframe-panels", action="store_true", help="write a geometry picture per keyframe")
+    p.add_argument("--no-mesh", action="store_true", help="poses only: skip fusion and meshing")
+    p.add_argument("--no-progress", action="store_true")
+    add_online_arguments(p)
+    p.set_defaults(func=run)
+
+
+def run(args) -> int:
+    config = load_config(args.config)
+    out = Path(args.out)
+    with open_source(f"{CAMERA_PREFIX}{args.camera}", config) as source:
+        vis = KeyframePanels(out / "keyframes") if args.keyframe_panels else NullVisualizer()
+        result = OnlinePipeline(source, config, out, online_options(args), vis).run()
+    report(result.stats, out)
+    return 0
+
+
+def report(s: dict, out: Path) -> None:
+    lat = s["latency_ms"]
+    print(f"online: {s['frames']} frames ({s['frames_dropped']} dropped), {s['keyframes']} keyframes "
+          f"({s['keyframes_skipped_for_loops']} without loop detection), {s.get('loops', 0)} loops, "
+          f"latency median {lat['median']:.0f} ms / p95 {lat['p95']:.0f} ms, stopped by {s['stopped_by']} -> {out}")
+    if s.get("backend_error"):
+        print(f"warning: {s['backend_error']}")
