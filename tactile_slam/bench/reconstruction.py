@@ -141,7 +141,10 @@ def run(args):
                     entry[label] = rep
                 print(_line(entry), flush=True)
                 results.append(entry)
-    return write_json(args.out, "reconstruction", {"settings": vars(args) | {"func": None}, "runs": results})
+                # rewritten after every run so a long benchmark leaves partial results
+                path = write_json(args.out, "reconstruction", {"settings": vars(args) | {"func": None},
+                                                                "runs": results})
+    return path
 
 
 def _line(e: dict) -> str:

@@ -56,13 +56,12 @@ def test_grid_faces_winding_and_count(device):
 
 
 def test_grid_normals_face_outward(dtype):
-    h = torch.zeros(8, 9, dtype=dtype)
     ys, xs = torch.meshgrid(torch.arange(8, dtype=dtype), torch.arange(9, dtype=dtype), indexing="ij")
     pts = torch.stack([xs, ys, 0.5 * xs], -1)  # plane z = x / 2
     n = grid_normals(pts)
     expected = torch.tensor([0.5, 0.0, -1.0], dtype=dtype) / (1.25**0.5)
     torch.testing.assert_close(n, expected.expand_as(n))
-    assert n.shape == (8, 9, 3) and h.shape == (8, 9)
+    assert n.shape == (8, 9, 3)
 
 
 def test_fused_point_is_weighted_mean_of_surfaces(device):
