@@ -1,0 +1,66 @@
+import argparse
+import json
+import math
+import time
+
+import pytest
+
+from tactile_slam.bench import tracking
+from tactile_slam.config import Config
+
+
+def parse(tmp_path, *extra):
+    p = argparse.ArgumentParser()
+    p.add_argument("--out", default=str(tmp_path / "tracking.json"))
+    tracking.add_arguments(p)
+    return p.parse_args(["--cache", str(tmp_path / "episodes"), *extra])
+
+
+def test_episode_set_from_flags(tmp_path):
+    args = parse(tmp_path, "--objects", "seed", "ball", "--seeds", "0", "1", "--image-objects", "seed",
+                 "--loss-objects", "knurled", "--loss-methods", "nf-kf", "icp")
+    specs = tracking.episode_specs(args)
+    kinds = [(s.table, s.object, s.seed) for s in specs]
+    assert kinds == [("tracking/gradients", "seed", 0), ("tracking/gradients", "seed", 1),
+                     ("tracking/gradients", "ball", 0), ("tracking/gradients", "ball", 1),
+                     ("tracking/image", "seed", 0), ("contact_loss/gradients", "knurled", 0)]
+    assert specs[-1].methods == ("nf-kf",)  # baselines do not run under contact loss
+    assert len({s.name for s in specs}) == len(specs)
+
+
+@pytest.mark.parametrize("extra", [["--methods", "nf", "foo"], ["--methods", "gs-imagesift"], ["--protocol", "tracking", "--level", "image", "--image-methods", "icp"],
+                                   ["--protocol", "contact_loss", "--loss-methods", "icp"]])
+def test_bad_flags(tmp_path, extra):
+    with pytest.raises(tracking.BenchConfigError):
+        tracking.episode_specs(parse(tmp_path, *extra))
+
+
+def test_tiny_run_writes_finite_report(tmp_path):
+    args = parse(tmp_path, "--objects", "seed", "--seeds", "0", "--frames", "40", "--methods", "gelslam", "icp",
+                 "--protocol", "tracking", "--level", "gradients", "--work", str(tmp_path / "runs"))
+    out = tracking.run(args)
+    doc = json.loads(out.read_text())
+    assert {"benchmark", "machine", "date", "results"} <= set(doc)
+    res = doc["results"]
+    row = res["summary"]["tracking/gradients"]
+    assert set(row) == {"gelslam", "icp"}
+    for m in ("gelslam", "icp"):
+        mae = row[m]["objects"]["seed"]
+        assert mae["n_frames"] >= 20
+        assert all(math.isfinite(mae[k]) and mae[k] >= 0 for k in tracking.AXES)
+        assert row[m]["mean_over_objects"]["rot_deg"] == pytest.approx(mae["rot_deg"])
+        assert math.isfinite(row[m]["timing_ms_median"]["total"])
+        # the pooled MAE of one episode is that episode's per-axis MAE
+        ep_mae = res["episodes"][0]["methods"][m]["per_axis_mae"]
+        assert mae["x_mm"] == pytest.approx(ep_mae["x_mm"]) and ep_mae["n_frames"] == mae["n_frames"]
+    # NormalFlow with keyframes tracks a textured object far better than point-to-plane ICP
+    assert row["gelslam"]["objects"]["seed"]["rot_deg"] < 1.0
+    loops = row["gelslam"]["loops"]
+    assert loops["reported"] == loops["correct"] + loops["false"] and loops["gt_loops"] >= loops["found"]
+    assert "gs_offline_zero_false_loops" in res["targets"]
+    assert out.with_suffix(".png").is_file()
+    # a second request reuses the cached episode instead of simulating again
+    spec = tracking.episode_specs(args)[0]
+    t0 = time.perf_counter()
+    path = tracking.cached_episode(tmp_path / "episodes", spec, Config())
+    assert path.name == spec.name and time.perf_counter() - t0 < 2.0
