@@ -70,8 +70,9 @@ class OnlineOptions(RunOptions):
         skip_loops: when the back end is busy, run loop detection for the newest queued
             keyframe only (the paper's online mode); ``False`` detects for every keyframe
             and lets the back end fall behind.
-        preview_every_s: write ``preview/preview.ply`` and ``preview/preview.png`` (the
-            fused preview surface of the main group) at most this often; ``None``: off.
+        preview_every_s: the worker writes ``preview/preview.ply`` and
+            ``preview/preview.png`` (the fused preview surface, each group in its own
+            start frame) at most this often and at the end; ``None``: off.
         backend_threads: torch threads of the worker.
         tracker_threads: torch threads of this process during the run (``None``: unchanged).
         jsonl: also write every pose event as a JSON line to this path (``"-"``: stdout).
