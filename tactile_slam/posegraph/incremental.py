@@ -3,9 +3,9 @@
 GelSLAM re-solves the whole graph from scratch after every keyframe. Here, after new nodes
 and factors are added to a :class:`PoseGraph`, :meth:`IncrementalSolver.update`:
 
-1. **skips** the solve when the new factors are already satisfied by the current estimate
-   (a keyframe whose only factor is its odometry, initialised by chaining it, leaves the
-   optimum unchanged: its residual is exactly zero) and no prior was removed;
+1. **skips** the solve when the new factors' whitened cost at the current estimate is at most
+   ``tol`` and no prior was removed (a solve could then lower the cost by at most that much;
+   a keyframe whose only factor is its odometry, initialised by chaining it, adds exactly 0);
 2. otherwise solves a **local region** first: the ``window`` poses nearest (in graph hops) to
    the new factors' ends, warm-started, with every other pose held fixed;
 3. **checks the boundary**: the cost decrease that moving the fixed poses next to the region
@@ -91,7 +91,7 @@ class IncrementalSolver:
             return report
 
         report.new_cost = _new_factor_cost(g, new_edges, torch.tensor(added_priors, dtype=torch.int64))
-        if report.new_cost <= cfg.abs_tol and not removed_priors:
+        if report.new_cost <= cfg.incremental_tol and not removed_priors:
             report.time_s = time.perf_counter() - t0
             return report
         report.skipped = False
