@@ -249,7 +249,8 @@ class Config:
 
     # ------------------------------------------------------------------ I/O
     def to_dict(self) -> dict[str, Any]:
-        return dataclasses.asdict(self)
+        """Plain YAML-ready values (tuples become lists)."""
+        return dataclasses.asdict(self, dict_factory=lambda kv: {k: list(v) if isinstance(v, tuple) else v for k, v in kv})
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
@@ -307,7 +308,8 @@ def _update(obj: Any, values: dict[str, Any], section: str) -> Any:
     for key, value in values.items():
         if key not in known:
             raise ConfigError(f"unknown key {section}.{key}")
-        kwargs[key] = value
+        default = getattr(obj, key)
+        kwargs[key] = tuple(value) if isinstance(default, tuple) and isinstance(value, list) else value
     return dataclasses.replace(obj, **kwargs)
 
 

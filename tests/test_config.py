@@ -55,11 +55,13 @@ def test_gelslam_layout(tmp_path):
 def test_own_layout_roundtrip(tmp_path):
     cfg = Config()
     cfg.normalflow.n_samples = 1234
+    cfg.normalflow.coarse_factors = (4, 2)
     cfg.sensor.name = "X"
     p = tmp_path / "c.yaml"
     cfg.save(p)
     back = load_config(p)
     assert back.normalflow.n_samples == 1234 and back.sensor.name == "X"
+    assert back.normalflow.coarse_factors == (4, 2)
     assert back.to_dict() == cfg.to_dict()
 
 
