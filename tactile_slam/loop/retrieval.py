@@ -214,7 +214,8 @@ class DescriptorIndex:
             if self._flann is not None:  # shrank back: search everything exactly
                 self._rebuild(flann=False)
             return
-        if self._flann is None or n_pending > s.rebuild_fraction * n_built or self._removed > s.rebuild_fraction * n_built:
+        limit = s.rebuild_fraction * n_built
+        if self._flann is None or n_pending > limit or self._removed > limit:
             self._rebuild(flann=True)
 
     def _rebuild(self, flann: bool) -> None:
