@@ -30,6 +30,7 @@ frames seen so far (``poses.npy``, ``trajectory_tum.txt``, ``keyframes.json``,
 from __future__ import annotations
 
 import contextlib
+import itertools
 import os
 import queue
 import signal
@@ -51,7 +52,7 @@ from tactile_slam.geometry.frame import Frame, InputError
 from tactile_slam.io.dataset import collate
 from tactile_slam.io.frames import FrameSource
 from tactile_slam.io.replay import RealtimeFeed
-from tactile_slam.pipeline.offline import LOOP_MODES, OfflinePipeline, RunOptions, RunResult, _chain
+from tactile_slam.pipeline.offline import LOOP_MODES, OfflinePipeline, RunOptions, RunResult
 from tactile_slam.pipeline.outputs import write_json
 from tactile_slam.pipeline.stream import PoseEvent, PoseStream
 from tactile_slam.pipeline.visualizer import NullVisualizer
@@ -184,44 +185,31 @@ class KeyframeMap:
         self.start_T_kf: dict[int, torch.Tensor] = {}
         self.group: dict[int, int] = {}
         self._pending: list[Keyframe] = []
-        self._last_in_session: dict[int, int] = {}
-        self._answered: set[int] = set()
+
+    def _place(self, kf: Keyframe) -> None:
+        # within a session keyframe ids are consecutive: the predecessor is id - 1
+        prev = kf.id - 1
+        if kf.new_session or prev not in self.start_T_kf:
+            self.start_T_kf[kf.id] = torch.eye(4, dtype=torch.float64)
+            self.group[kf.id] = -1 - kf.session  # a provisional group of its own
+        else:
+            self.start_T_kf[kf.id] = self.start_T_kf[prev] @ kf.prev_T_kf
+            self.group[kf.id] = self.group[prev]
 
     def add(self, kf: Keyframe) -> None:
         """A keyframe just sent to the back end."""
         self._pending.append(kf)
-        self._chain(kf)
-        self._last_in_session[kf.session] = kf.id
-
-    def _chain(self, kf: Keyframe) -> None:
-        prev = None if kf.new_session else self._last_in_session.get(kf.session)
-        if prev is None or prev not in self.start_T_kf:
-            self.start_T_kf[kf.id] = torch.eye(4, dtype=torch.float64)
-            self.group[kf.id] = -1 - kf.session  # provisional group of its own
-        else:
-            self.start_T_kf[kf.id] = self.start_T_kf[prev] @ kf.prev_T_kf
-            self.group[kf.id] = self.group[prev]
+        self._place(kf)
 
     def apply(self, update: PoseUpdate) -> None:
         """Take the back end's poses, then re-chain the keyframes it has not seen."""
         for i, pose, g in zip(update.ids.tolist(), update.poses, update.groups.tolist()):
             self.start_T_kf[i] = torch.from_numpy(pose)
             self.group[i] = g
-        self._answered.update(update.ids.tolist())
-        self._pending = [k for k in self._pending if k.id not in self._answered]
-        last = {}
+        answered = set(update.ids.tolist())
+        self._pending = [k for k in self._pending if k.id not in answered]
         for kf in self._pending:
-            # predecessor: the previous pending keyframe of the session, or the answered one
-            prev_pending = last.get(kf.session)
-            if kf.new_session:
-                self.start_T_kf[kf.id] = torch.eye(4, dtype=torch.float64)
-                self.group[kf.id] = -1 - kf.session
-            else:
-                prev = prev_pending if prev_pending is not None else kf.id - 1
-                if prev in self.start_T_kf:
-                    self.start_T_kf[kf.id] = self.start_T_kf[prev] @ kf.prev_T_kf
-                    self.group[kf.id] = self.group[prev]
-            last[kf.session] = kf.id
+            self._place(kf)
 
 
 # ---------------------------------------------------------------- the worker
@@ -572,7 +560,7 @@ class OnlinePipeline(OfflinePipeline):
             builder, pending = self._builder(first, frames)
             tracker = self._tracker()
             try:
-                for batch in _chain([pending] if pending is not None else [], frames):
+                for batch in itertools.chain([pending] if pending is not None else [], frames):
                     if self.backend is not None:
                         take(self.backend.poll())
                     t0 = time.perf_counter()
