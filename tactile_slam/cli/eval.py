@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_slam.eval.loop_metrics import loop_precision_recall
 from tactile_slam.eval.tracking_metrics import AXES, per_axis_errors, tracking_report
 from tactile_slam.eval.trajectory import TrajectoryError, check_trajectory, relative_to, valid_mask
 from tactile_slam.sim.episode import read_episode, read_mesh
@@ -65,6 +66,8 @@ def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, to
         "gt_first_contact_frame": ep.first_contact,
         "tracking": tracking_report(est, gt, frames),
     }
+    if (run_dir / "loops.json").is_file() and (run_dir / "keyframes.json").is_file():
+        metrics["loops"] = loop_report(run_dir, ep.object_T_sensor)
     meshes = [name for name in RECON_FILES if (run_dir / name).is_file()] if recon else []
     if meshes:
         from tactile_slam.eval.recon_metrics import recon_report
@@ -77,6 +80,16 @@ def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, to
     errors = per_axis_errors(est, gt)
     errors[~frames] = np.nan
     return metrics, {"frames": np.arange(ref, ref + len(est)), "errors": errors}
+
+
+def loop_report(run_dir: Path, object_T_sensor: np.ndarray) -> dict:
+    """Precision of the run's accepted loops (``loops.json``) against ground truth: each
+    loop's keyframes map to video frames through ``keyframes.json``."""
+    loops = json.loads((run_dir / "loops.json").read_text())
+    video = {k["id"]: k["video_index"] for k in json.loads((run_dir / "keyframes.json").read_text())}
+    pairs = np.array([[video[lp["ref_id"]], video[lp["tar_id"]]] for lp in loops], dtype=np.int64).reshape(-1, 2)
+    rel = np.array([lp["ref_T_tar"] for lp in loops], dtype=np.float64).reshape(-1, 4, 4)
+    return loop_precision_recall(pairs, rel, object_T_sensor)
 
 
 def plot_errors(path: Path, frames: np.ndarray, errors: np.ndarray, fps: float, title: str) -> None:

@@ -144,3 +144,12 @@ def test_scan_folder_frame_indexing(tracking_episode, tmp_path):
     s = Scan(scan)
     assert s.start == 10 and len(s) == 5
     assert [f.index for f in s] == list(range(10, 15))
+
+
+def test_eval_scores_accepted_loops(contact_loss_episode, tmp_path):
+    """`tactile-slam eval` reports the precision of the run's loops against ground truth."""
+    run(contact_loss_episode, tmp_path, "gelslam")
+    assert main(["eval", str(tmp_path), "--gt", str(contact_loss_episode), "--no-recon"]) == 0
+    loops = json.loads((tmp_path / "metrics.json").read_text())["loops"]
+    assert loops["reported"] >= 1 and loops["precision"] == 1.0
+    assert loops["trans_err_mm"] < 0.3 and loops["rot_err_deg"] < 1.0
