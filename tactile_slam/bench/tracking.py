@@ -1,4 +1,4 @@
-"""Tracking accuracy (paper Table IV layout) of NF, NF-KF, ICP, FPFH+RANSAC+ICP and the GelSLAM variants on simulated episodes.
+"""Tracking accuracy (Table IV layout): NF, NF-KF, ICP, FPFH+RI, GelSLAM variants on simulated episodes.
 
 Episodes come from :func:`tactile_slam.sim.episode.simulate_episode` and are cached in
 ``--cache`` (a rerun with the same settings skips simulation). Three episode sets:
@@ -73,7 +73,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objects", nargs="+", default=["seed", "shell", "dice", "lime", "handle", "knurled"])
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
     p.add_argument("--frames", type=int, default=150, help="frames per tracking episode (10 lead-in)")
-    p.add_argument("--methods", nargs="+", default=["nf", "nf-kf", "icp", "fpfh", "gelslam", "gs-onlysift", "gs-onlynf"],
+    p.add_argument("--methods", nargs="+",
+                   default=["nf", "nf-kf", "icp", "fpfh", "gelslam", "gs-onlysift", "gs-onlynf"],
                    help="methods on the gradient-level tracking set")
     p.add_argument("--level", choices=["gradients", "image", "both"], default="both",
                    help="input level of the tracking set (image: --image-objects, first seed)")
@@ -346,6 +347,33 @@ def targets(summary: dict) -> dict:
     return out
 
 
+def table_iv(summary: dict) -> str:
+    """Markdown tables in the paper's Table IV layout (mean over objects), one per
+    episode set, plus the per-object rotation / translation means and loop counts."""
+    lines = []
+    for table, methods in summary.items():
+        lines += [f"**{table}** (mean over objects: {', '.join(next(iter(methods.values()))['mean_objects'])})", "",
+                  "| method | rx (deg) | ry (deg) | rz (deg) | x (mm) | y (mm) | z (mm) | estimated | loops (false) "
+                  "| loop recall | ms/frame |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for row in methods.values():
+            m = row["mean_over_objects"]
+            loops = row.get("loops")
+            lp = f"{loops['reported']} ({loops['false']})" if loops else "-"
+            rc = f"{loops['recall']:.2f} of {loops['gt_loops']}" if loops else "-"
+            total = row["timing_ms_median"].get("total", float("nan"))
+            lines.append(f"| {row['label']} | " + " | ".join(f"{m[k]:.3f}" for k in (*ROT, *TRANS))
+                         + f" | {row['estimated_fraction']:.2f} | {lp} | {rc} | {total:.0f} |")
+        objects = sorted({o for row in methods.values() for o in row["objects"]})
+        lines += ["", "| method | " + " | ".join(f"{o} rot / trans" for o in objects) + " |",
+                  "|---|" + "---|" * len(objects)]
+        for row in methods.values():
+            cells = [f"{row['objects'][o]['rot_deg']:.3f} / {row['objects'][o]['trans_mm']:.3f}"
+                     if o in row["objects"] else "-" for o in objects]
+            lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
+        lines.append("")
+    return "\n".join(lines)
+
+
 def plot(path: Path, summary: dict) -> None:
     """Grouped bars of rotation and translation MAE (mean of the three axes) per object
     per method, one row per episode set; log scale."""
@@ -421,5 +449,6 @@ def run(args) -> Path:
         "total_wall_s": time.perf_counter() - t_start,
     }
     out = write_json(args.out, "tracking", results)
+    print(table_iv(summary))
     plot(Path(args.png) if args.png else out.with_suffix(".png"), summary)
     return out

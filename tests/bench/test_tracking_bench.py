@@ -28,7 +28,8 @@ def test_episode_set_from_flags(tmp_path):
     assert len({s.name for s in specs}) == len(specs)
 
 
-@pytest.mark.parametrize("extra", [["--methods", "nf", "foo"], ["--methods", "gs-imagesift"], ["--protocol", "tracking", "--level", "image", "--image-methods", "icp"],
+@pytest.mark.parametrize("extra", [["--methods", "nf", "foo"], ["--methods", "gs-imagesift"],
+                                   ["--protocol", "tracking", "--level", "image", "--image-methods", "icp"],
                                    ["--protocol", "contact_loss", "--loss-methods", "icp"]])
 def test_bad_flags(tmp_path, extra):
     with pytest.raises(tracking.BenchConfigError):
@@ -59,6 +60,8 @@ def test_tiny_run_writes_finite_report(tmp_path):
     assert loops["reported"] == loops["correct"] + loops["false"] and loops["gt_loops"] >= loops["found"]
     assert "gs_offline_zero_false_loops" in res["targets"]
     assert out.with_suffix(".png").is_file()
+    table = tracking.table_iv(res["summary"])
+    assert "| GS-Offline |" in table and "| ICP |" in table and "nan" not in table.split("| ICP |")[1].split("|")[1]
     # a second request reuses the cached episode instead of simulating again
     spec = tracking.episode_specs(args)[0]
     t0 = time.perf_counter()
