@@ -80,3 +80,36 @@ def trajectory_report(path, frames: np.ndarray, est: np.ndarray, gt: np.ndarray,
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
+
+
+def pose_graph_figure(path, positions_mm: np.ndarray, coverage: np.ndarray, odometry: np.ndarray,
+                      loops: np.ndarray, title: str) -> None:
+    """PNG of a pose graph seen from above (like GelSLAM's Fig. 13).
+
+    Args:
+        positions_mm: ``(K, 3)`` keyframe positions in the start frame, mm.
+        coverage: ``(K,)`` bool, active coverage keyframes.
+        odometry, loops: ``(E, 2)`` row indices into ``positions_mm`` of the edges.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 6))
+    p = positions_mm
+    for (i, j) in odometry:
+        ax.plot(p[[i, j], 0], p[[i, j], 1], color="0.6", lw=0.8, zorder=1)
+    for n, (i, j) in enumerate(loops):
+        ax.plot(p[[i, j], 0], p[[i, j], 1], color="tab:red", lw=0.6, alpha=0.7, zorder=2,
+                label="loop" if n == 0 else None)
+    ax.scatter(p[~coverage, 0], p[~coverage, 1], s=8, color="tab:blue", label="keyframe", zorder=3)
+    ax.scatter(p[coverage, 0], p[coverage, 1], s=22, color="tab:orange", label="coverage keyframe", zorder=4)
+    ax.set_xlabel("x (mm)")
+    ax.set_ylabel("y (mm)")
+    ax.set_aspect("equal")
+    ax.set_title(title)
+    ax.legend(loc="best", fontsize=8)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)

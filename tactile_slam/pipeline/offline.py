@@ -19,18 +19,19 @@ from tqdm import tqdm
 from tactile_slam.backend import BackEnd
 from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.config import Config
+from tactile_slam.eval.trajectory import write_tum
 from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError
 from tactile_slam.io.dataset import FrameBatch, iter_batches
 from tactile_slam.io.frames import FrameSource
 from tactile_slam.io.scan import check_background, mean_background
 from tactile_slam.pipeline.odometry import OdometryMap
-from tactile_slam.eval.trajectory import write_tum
 from tactile_slam.pipeline.outputs import frame_poses, main_group_poses, write_json
 from tactile_slam.pipeline.visualizer import NullVisualizer
 from tactile_slam.recon import ReconError, TriMesh, reconstruct
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
 from tactile_slam.tracking.keyframe import Keyframe
 from tactile_slam.tracking.tracker import NormalFlowRegistrar, Tracker
+from tactile_slam.viz import pose_graph_figure
 
 # method -> loop-closure mode of the back end (None: no back end, odometry only)
 LOOP_MODES = {
@@ -282,12 +283,30 @@ class OfflinePipeline:
         res.save(self.out_dir)
         return {k: v for k, v in res.stats.items() if isinstance(v, (int, float, str, bool))}
 
+    def _plot_graph(self, backend: BackEnd) -> None:
+        """``pose_graph.png``: the largest group's keyframes, coverage keyframes and edges."""
+        group = backend.group
+        root = max(set(group.values()), key=lambda g: sum(1 for v in group.values() if v == g))
+        ids = [k for k in backend.keyframes if group[k] == root]
+        row = {k: i for i, k in enumerate(ids)}
+        poses = backend.graph.poses(ids).numpy()
+        active = set(backend.coverage.active)
+        kfs = backend.keyframes
+        odo = [(row[k - 1], row[k]) for k in ids
+               if k - 1 in row and not kfs[k].new_session and kfs[k - 1].session == kfs[k].session]
+        lps = [(row[lp.ref_id], row[lp.tar_id]) for lp in backend.loops if lp.ref_id in row and lp.tar_id in row]
+        pose_graph_figure(self.out_dir / "pose_graph.png", poses[:, :3, 3] * 1000.0,
+                          np.array([k in active for k in ids]), np.array(odo, dtype=int).reshape(-1, 2),
+                          np.array(lps, dtype=int).reshape(-1, 2),
+                          f"pose graph: {len(ids)} keyframes, {len(active & set(ids))} coverage, {len(lps)} loops")
+
     def _write_backend(self, backend: BackEnd, med) -> dict:
         """``loops.json``, ``pose_graph.g2o`` and the back end's statistics."""
         out = self.out_dir
         write_json(out / "loops.json", [loop.to_dict() for loop in backend.loops])
         if backend.graph.num_nodes:
             backend.graph.to_g2o(out / "pose_graph.g2o")
+            self._plot_graph(backend)
         st = backend.stats
         det = backend.detector.stats if backend.detector is not None else None
         return {

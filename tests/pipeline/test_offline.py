@@ -97,7 +97,7 @@ def test_contact_loss_sessions_merge_with_loops(contact_loss_episode, tmp_path):
     assert max(mae["rx_deg"], mae["ry_deg"], mae["rz_deg"]) < 1.0, mae
     loops = json.loads((tmp_path / "full" / "loops.json").read_text())
     assert len(loops) == full.stats["loops"]
-    assert (tmp_path / "full" / "pose_graph.g2o").is_file()
+    assert (tmp_path / "full" / "pose_graph.g2o").is_file() and (tmp_path / "full" / "pose_graph.png").is_file()
 
 
 def test_no_contact_is_an_error_and_writes_nothing(tmp_path):
