@@ -174,7 +174,8 @@ class PoseUpdate:
 class KeyframeMap:
     """Keyframe poses as the tracker knows them: the back end's latest answer, and
     keyframes it has not answered for yet chained by odometry from their predecessor in
-    the session (a session head alone starts its own group at the identity).
+    the session (a session head alone starts its own group at the identity, labelled by
+    its session id, as the back end labels a group by its root session).
 
     ``start_T_kf[id]`` ``(4, 4)`` float64 metres and ``group[id]`` (the same interface as
     :class:`~tactile_slam.backend.BackEnd` and
@@ -191,7 +192,7 @@ class KeyframeMap:
         prev = kf.id - 1
         if kf.new_session or prev not in self.start_T_kf:
             self.start_T_kf[kf.id] = torch.eye(4, dtype=torch.float64)
-            self.group[kf.id] = -1 - kf.session  # a provisional group of its own
+            self.group[kf.id] = kf.session  # its own group, labelled like the back end's (root session)
         else:
             self.start_T_kf[kf.id] = self.start_T_kf[prev] @ kf.prev_T_kf
             self.group[kf.id] = self.group[prev]

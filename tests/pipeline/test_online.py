@@ -179,7 +179,7 @@ def test_killed_backend_is_reported_and_tracking_goes_on(episode, tmp_path):
     assert all(torch.isfinite(e.map_T_sensor).all() for e in after)
     # poses of the frames tracked after the kill are saved (odometry on top of the last solve)
     contact = res.frame_group >= 0
-    assert np.isfinite(res.poses_by_group[contact]).all()
+    assert contact.sum() == s["contact_frames"] and np.isfinite(res.poses_by_group[contact]).all()
 
 
 def test_cli_live_without_camera(tmp_path, capsys):
@@ -316,4 +316,55 @@ def test_keyframe_map_chains_until_the_back_end_answers():
     kmap.apply(PoseUpdate(np.array([0, 1]), np.stack([np.eye(4), moved.numpy()]), np.array([0, 0]), 0, 0, 0))
     torch.testing.assert_close(kmap.start_T_kf[1], moved)
     torch.testing.assert_close(kmap.start_T_kf[2], moved @ kfs[2].prev_T_kf)  # re-chained on the answer
-    assert kmap.group[2] == 0 and kmap.group[3] < 0
+    assert kmap.group[2] == 0 and kmap.group[3] == 1  # the new session is its own group
+
+
+# ---------------------------------------------------------------- live camera
+
+
+class FakeCapture:
+    """A sensor at 25 Hz: 10 contact-free frames, then a held press."""
+
+    def __init__(self, background, press):
+        self.background, self.press, self.reads = background, press, 0
+
+    def isOpened(self):
+        return True
+
+    def set(self, prop, value):
+        return True
+
+    def read(self):
+        time.sleep(0.04)
+        self.reads += 1
+        return True, (self.background if self.reads <= 10 else self.press).copy()
+
+    def release(self):
+        pass
+
+
+def test_live_camera_held_press(mini_data, tmp_path):
+    """The live path: a camera stream (background from its first frames, colour
+    decoding), stopped from the pose stream; a held press tracks to the identity."""
+    import cv2
+
+    from tactile_slam.io.camera import CameraSource
+
+    bg = cv2.imread(str(mini_data / "calibration" / "background.png"))
+    press = cv2.imread(str(mini_data / "calibration" / "6.310mm" / "0" / "gelsight.png"))
+    cam = CameraSource(0, open_capture=lambda i: FakeCapture(bg, press))
+    pipe = OnlinePipeline(cam, Config(), tmp_path, OnlineOptions(method="nf-kf", progress=False, mesh=False))
+    tracked = []
+    for event in pipe.start():
+        if event.in_contact:
+            tracked.append(event)
+            if len(tracked) == 6:
+                pipe.stop()
+    res = pipe.join(timeout=600)
+    cam.close()
+    s = res.stats
+    assert s["stopped_by"] == "stopped" and s["frames"] >= 6 and s["frames_read"] >= s["frames"] + 10
+    assert s["frames_read"] >= s["frames"] + 10 + s["frames_dropped"]  # background window, tracked, dropped
+    for e in tracked:
+        torch.testing.assert_close(e.map_T_sensor, torch.eye(4, dtype=torch.float64), atol=2e-5, rtol=0)
+    assert np.isfinite(np.load(tmp_path / "poses.npy")).all(axis=(1, 2)).sum() == s["frames_with_pose"] >= 6
