@@ -72,10 +72,10 @@ class BenchConfigError(ValueError):
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objects", nargs="+", default=["seed", "shell", "dice", "lime", "handle", "knurled"])
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
-    p.add_argument("--frames", type=int, default=150, help="frames per tracking episode (10 lead-in)")
+    p.add_argument("--frames", type=int, default=200, help="frames per tracking episode (10 lead-in)")
     p.add_argument("--methods", nargs="+",
-                   default=["nf", "nf-kf", "icp", "fpfh", "gelslam", "gs-onlysift", "gs-onlynf"],
-                   help="methods on the gradient-level tracking set")
+                   default=["nf", "nf-kf", "icp", "gelslam", "gs-onlysift", "gs-onlynf"],
+                   help="methods on the gradient-level tracking set (add fpfh: seconds per frame)")
     p.add_argument("--level", choices=["gradients", "image", "both"], default="both",
                    help="input level of the tracking set (image: --image-objects, first seed)")
     p.add_argument("--image-objects", nargs="+", default=["seed", "shell"])
