@@ -22,9 +22,12 @@ the group's root session) up to date. Per keyframe (offline step order of method
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import dataclass, field
+from pathlib import Path
 
+import numpy as np
 import torch
 
 from tactile_slam.config import Config
@@ -139,6 +142,27 @@ class BackEnd:
                 self.detector.remove(kf.id)
         self.stats.time_coverage.append(time.perf_counter() - t2)
         return loops
+
+    def summary(self) -> dict:
+        """The paper's statistics (Table II/V) and median times per keyframe in ms."""
+        med = lambda xs: float(np.median(xs) * 1000) if xs else float("nan")  # noqa: E731
+        st = self.stats
+        return {
+            "coverage_keyframes": len(self.coverage.active),
+            "loop_candidates": self.detector.stats.candidates if self.detector is not None else 0,
+            "loops": st.loops,
+            "group_merges": st.merges,
+            "timing_ms_per_keyframe": {"loop_detection": med(st.time_loop_detection),
+                                       "pose_graph": med(st.time_pose_graph),
+                                       "coverage": med(st.time_coverage)},
+        }
+
+    def write(self, out_dir: Path) -> None:
+        """``loops.json`` (accepted loops) and ``pose_graph.g2o`` into ``out_dir``."""
+        out_dir.mkdir(parents=True, exist_ok=True)
+        (out_dir / "loops.json").write_text(json.dumps([loop.to_dict() for loop in self.loops], indent=2))
+        if self.graph.num_nodes:
+            self.graph.to_g2o(out_dir / "pose_graph.g2o")
 
     def finish(self) -> None:
         """Final full warm-started solve (end of the scan)."""

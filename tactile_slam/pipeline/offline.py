@@ -255,7 +255,7 @@ class OfflinePipeline:
             "completed": error is None,
         }
         if isinstance(backend, BackEnd):
-            stats.update(self._write_backend(backend, med))
+            stats.update(self._write_backend(backend))
         if self.options.mesh and error is None:
             stats["reconstruction"] = self._reconstruct(keyframes, start_T_kf, group_of_kf, kf_of_full, kf_T_full)
         if error is not None:
@@ -300,24 +300,12 @@ class OfflinePipeline:
                           np.array(lps, dtype=int).reshape(-1, 2),
                           f"pose graph: {len(ids)} keyframes, {len(active & set(ids))} coverage, {len(lps)} loops")
 
-    def _write_backend(self, backend: BackEnd, med) -> dict:
-        """``loops.json``, ``pose_graph.g2o`` and the back end's statistics."""
-        out = self.out_dir
-        write_json(out / "loops.json", [loop.to_dict() for loop in backend.loops])
+    def _write_backend(self, backend: BackEnd) -> dict:
+        """``loops.json``, ``pose_graph.g2o``, ``pose_graph.png`` and the back end's statistics."""
+        backend.write(self.out_dir)
         if backend.graph.num_nodes:
-            backend.graph.to_g2o(out / "pose_graph.g2o")
             self._plot_graph(backend)
-        st = backend.stats
-        det = backend.detector.stats if backend.detector is not None else None
-        return {
-            "coverage_keyframes": len(backend.coverage.active),
-            "loop_candidates": det.candidates if det is not None else 0,
-            "loops": st.loops,
-            "group_merges": st.merges,
-            "timing_ms_per_keyframe": {"loop_detection": med(st.time_loop_detection),
-                                       "pose_graph": med(st.time_pose_graph),
-                                       "coverage": med(st.time_coverage)},
-        }
+        return backend.summary()
 
 
 def transform_mesh(mesh: TriMesh, a_T_b: torch.Tensor) -> TriMesh:

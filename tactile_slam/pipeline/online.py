@@ -286,30 +286,12 @@ def backend_worker(config: Config, loop_mode: str, inbox, outbox, skip_loops: bo
                 last_preview = time.monotonic()
             if not finish:
                 outbox.put(("update", _update(backend, skipped, step_s)))
-        stats = _backend_stats(backend)
+        stats = backend.summary()
         if backend.keyframes:
-            out.mkdir(parents=True, exist_ok=True)
-            write_json(out / "loops.json", [loop.to_dict() for loop in backend.loops])
-            if backend.graph.num_nodes:
-                backend.graph.to_g2o(out / "pose_graph.g2o")
+            backend.write(out)
         outbox.put(("final", _update(backend, skipped, []), stats))
     except BaseException:  # reported to the tracker, which carries on without us
         outbox.put(("error", traceback.format_exc()))
-
-
-def _backend_stats(backend: BackEnd) -> dict:
-    med = lambda xs: float(np.median(xs) * 1000) if xs else float("nan")  # noqa: E731
-    st = backend.stats
-    det = backend.detector.stats if backend.detector is not None else None
-    return {
-        "coverage_keyframes": len(backend.coverage.active),
-        "loop_candidates": det.candidates if det is not None else 0,
-        "loops": st.loops,
-        "group_merges": st.merges,
-        "timing_ms_per_keyframe": {"loop_detection": med(st.time_loop_detection),
-                                   "pose_graph": med(st.time_pose_graph),
-                                   "coverage": med(st.time_coverage)},
-    }
 
 
 @contextlib.contextmanager
