@@ -11,12 +11,14 @@ permutation (first ``floor((1 - test_fraction) N)`` train).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import math
 from dataclasses import dataclass, field
 
 import torch
 
-from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet
+from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet, Press
 from tactile_slam.calibration.labels import PressLabel
 from tactile_slam.calibration.model import pixel_features
 
@@ -93,15 +95,17 @@ def split_presses(reldirs: list[str], seed: int, test_fraction: float = 0.2) -> 
     return {"train": [reldirs[i] for i in perm[:n_train]], "test": [reldirs[i] for i in perm[n_train:]]}
 
 
-def press_samples(
-    calib: CalibrationSet, labels: dict[str, PressLabel], reldirs: list[str], mm_per_px: float, margin_px: float = 4.0
-) -> tuple[Samples, dict[str, str]]:
-    """Contact samples of the reliable, not-too-deep presses among ``reldirs``.
+def labelled_targets(
+    calib: CalibrationSet, labels: dict[str, PressLabel], reldirs: list[str], mm_per_px: float,
+    margin_px: float, skipped: dict[str, str],
+) -> Iterator[tuple[str, Press, torch.Tensor, torch.Tensor]]:
+    """``(reldir, press, angles (H, W, 2), mask (H, W))`` for each usable press of
+    ``reldirs``; presses left out (unreliable label, too deep, disc off the image) are
+    recorded in ``skipped`` with the reason.
 
-    Returns:
-        The samples and ``{reldir: reason}`` for the presses left out.
+    Raises:
+        CalibrationDataError: a press has no label.
     """
-    feats, angs, ids, kept, skipped = [], [], [], [], {}
     for reldir in reldirs:
         if reldir not in labels:
             raise CalibrationDataError(f"press {reldir} has no label")
@@ -118,6 +122,19 @@ def press_samples(
         if not mask.any():
             skipped[reldir] = "labelled disc lies outside the image"
             continue
+        yield reldir, press, ang, mask
+
+
+def press_samples(
+    calib: CalibrationSet, labels: dict[str, PressLabel], reldirs: list[str], mm_per_px: float, margin_px: float = 4.0
+) -> tuple[Samples, dict[str, str]]:
+    """Contact samples of the reliable, not-too-deep presses among ``reldirs``.
+
+    Returns:
+        The samples and ``{reldir: reason}`` for the presses left out.
+    """
+    feats, angs, ids, kept, skipped = [], [], [], [], {}
+    for reldir, press, ang, mask in labelled_targets(calib, labels, reldirs, mm_per_px, margin_px, skipped):
         f = pixel_features(torch.from_numpy(calib.image(press))[None])[0]
         feats.append(f[mask])
         angs.append(ang[mask])

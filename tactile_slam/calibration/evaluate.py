@@ -21,7 +21,7 @@ from typing import Any
 import torch
 
 from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet
-from tactile_slam.calibration.dataset import sphere_targets
+from tactile_slam.calibration.dataset import labelled_targets
 from tactile_slam.calibration.labels import PressLabel
 from tactile_slam.calibration.model import GradientDecoder, GradientMLP, pixel_features
 from tactile_slam.geometry.curvature import normals_from_gradients
@@ -86,22 +86,7 @@ def evaluate_model(
     bg = torch.from_numpy(calib.background).to(device)
     decoder = GradientDecoder(model, bg, skip_color_dist=0.0)
     errors, skipped = [], {}
-    for reldir in reldirs:
-        if reldir not in labels:
-            raise CalibrationDataError(f"press {reldir} has no label")
-        lb = labels[reldir]
-        if not lb.reliable:
-            skipped[reldir] = f"unreliable label: {lb.reason}"
-            continue
-        press = calib.press(reldir)
-        try:
-            ang, mask = sphere_targets(calib.shape, lb.cx, lb.cy, lb.radius, press.ball_radius_px(mm_per_px), margin_px)
-        except ValueError as exc:
-            skipped[reldir] = str(exc)
-            continue
-        if not mask.any():
-            skipped[reldir] = "labelled disc lies outside the image"
-            continue
+    for reldir, press, ang, mask in labelled_targets(calib, labels, reldirs, mm_per_px, margin_px, skipped):
         ang, mask = ang.to(device), mask.to(device)
         img = torch.from_numpy(calib.image(press)).to(device)[None]
         pred = model(pixel_features(img)[0][mask])
