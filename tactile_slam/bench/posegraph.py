@@ -24,7 +24,7 @@ from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.incremental import IncrementalSolver
 from tactile_slam.posegraph.reference import solve_pypose
 from tactile_slam.posegraph.solver import solve
-from tactile_slam.posegraph.synthetic import SyntheticScan, replay_steps, synthetic_scan
+from tactile_slam.posegraph.synthetic import SyntheticScan, add_step, replay_steps, synthetic_scan
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -69,14 +69,7 @@ def _incremental(scan: SyntheticScan) -> dict:
     t_all, c_all = time.perf_counter(), time.process_time()
     for step in replay_steps(scan):
         t0 = time.perf_counter()
-        if step.odometry is None:
-            g.add_node(step.t)
-            g.add_prior(step.t)
-        else:
-            g.add_node(step.t, g.pose(step.t - 1) @ step.odometry)
-            g.add_between(step.t - 1, step.t, step.odometry)
-        for r, Z in step.loops:
-            g.add_between(r, step.t, Z, kind="loop")
+        add_step(g, step)
         rep = inc.update()
         per_kf.append(time.perf_counter() - t0)
         if not rep.skipped:

@@ -176,3 +176,16 @@ def replay_steps(scan: SyntheticScan) -> list[KeyframeStep]:
         else:
             steps[j].odometry = e.Z[k]
     return steps
+
+
+def add_step(graph: PoseGraph, step: KeyframeStep) -> None:
+    """Insert one replayed keyframe into ``graph``: a node with its chained initial value
+    and its prior (session head) or odometry factor, then the loops ending at it."""
+    if step.odometry is None:
+        graph.add_node(step.t)
+        graph.add_prior(step.t)
+    else:
+        graph.add_node(step.t, graph.pose(step.t - 1) @ step.odometry)
+        graph.add_between(step.t - 1, step.t, step.odometry)
+    for r, Z in step.loops:
+        graph.add_between(r, step.t, Z, kind="loop")

@@ -11,7 +11,7 @@ from tactile_slam.config import PoseGraphConfig
 from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.incremental import IncrementalSolver
 from tactile_slam.posegraph.solver import solve
-from tactile_slam.posegraph.synthetic import replay_steps, synthetic_scan
+from tactile_slam.posegraph.synthetic import add_step, replay_steps, synthetic_scan
 
 
 def _replay(scan, config=None):
@@ -20,14 +20,7 @@ def _replay(scan, config=None):
     inc = IncrementalSolver(g, config)
     reports = []
     for step in replay_steps(scan):
-        if step.odometry is None:
-            g.add_node(step.t)
-            g.add_prior(step.t)
-        else:
-            g.add_node(step.t, g.pose(step.t - 1) @ step.odometry)
-            g.add_between(step.t - 1, step.t, step.odometry)
-        for r, Z in step.loops:
-            g.add_between(r, step.t, Z, kind="loop")
+        add_step(g, step)
         reports.append(inc.update())
     return g, inc, reports
 

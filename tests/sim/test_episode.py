@@ -6,6 +6,7 @@ import yaml
 
 from tactile_slam.calibration.colour_model import ColourModel
 from tactile_slam.cli.main import main
+from tactile_slam.io.video import VideoSource
 from tactile_slam.sim.episode import (EpisodeError, SimulationSettings, compose_images, read_episode,
                                       simulate_episode, synthetic_background)
 from tactile_slam.sim.renderer import GelRenderer
@@ -54,14 +55,7 @@ def test_image_level_video_is_exact(tmp_path):
                "--level", "image", "--colour-model", str(model_path), "--background", str(tmp_path / "bg.png"),
                "--out", str(out)])
     assert rc == 0
-    cap = cv2.VideoCapture(str(out / "gelsight.avi"))
-    frames = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        frames.append(f)
-    video = np.stack(frames)
+    video = np.stack([f.bgr for f in VideoSource(out / "gelsight.avi")])
     assert video.shape == (14, 240, 320, 3)
     assert np.array_equal(cv2.imread(str(out / "background.png")), bg)
     ep = read_episode(out)
@@ -109,14 +103,7 @@ def test_image_level_decodes_back_to_ground_truth(tmp_path, mini_data):
     if not DEFAULT_COLOUR_MODEL.is_file():
         pytest.skip(f"no colour model at {DEFAULT_COLOUR_MODEL}")
     simulate_episode(tmp_path, SimulationSettings(object="lime", kind="tracking", frames=24, level="image"))
-    cap = cv2.VideoCapture(str(tmp_path / "gelsight.avi"))
-    frames = []
-    while True:
-        ok, f = cap.read()
-        if not ok:
-            break
-        frames.append(f)
-    video = np.stack(frames)
+    video = np.stack([f.bgr for f in VideoSource(tmp_path / "gelsight.avi")])
     cfg = Config()
     model, _ = load_model(mini_data / "reference_model" / "nnmodel.pth")
     background = torch.from_numpy(video[:10].astype(np.float32).mean(0))
