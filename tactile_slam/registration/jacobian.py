@@ -14,8 +14,7 @@ that function with ``torch.func``; :func:`jacobian_analytic` is the closed form
 
 from __future__ import annotations
 
-from functools import lru_cache
-
+import numpy as np
 import torch
 from torch.func import jacrev, vmap
 
@@ -25,28 +24,24 @@ _SOBEL_GAIN = 128.0  # response of the 5x5 Sobel to a unit ramp
 
 
 # Entries of Rx, Ry, Rz as indices into [cos(w) (3), sin(w) (3), -sin(w) (3), 0, 1].
-_EULER_INDEX = (
+_EULER_INDEX = [
     10, 9, 9, 9, 0, 6, 9, 3, 0,  # Rx
     1, 9, 4, 9, 10, 9, 7, 9, 1,  # Ry
     2, 8, 9, 5, 2, 9, 9, 9, 10,  # Rz
-)
+]
 
 
-@lru_cache(maxsize=16)
-def _euler_constants(dtype: torch.dtype, device: torch.device) -> tuple[torch.Tensor, torch.Tensor]:
-    return (torch.tensor([[0.0, 1.0]], dtype=dtype, device=device),
-            torch.tensor(_EULER_INDEX, device=device))
-
-
-def euler_to_matrix(angles: torch.Tensor) -> torch.Tensor:
-    """``R = Rz(wz) Ry(wy) Rx(wx)`` (scipy's extrinsic "xyz"); differentiable.
+def euler_to_matrix(angles):
+    """``R = Rz(wz) Ry(wy) Rx(wx)`` (scipy's extrinsic "xyz"); differentiable for
+    tensors, and the same for numpy arrays (the host-side pose updates).
 
     ``(B, 3)`` angles in rad -> ``(B, 3, 3)``.
     """
-    zo, idx = _euler_constants(angles.dtype, angles.device)
-    s = torch.sin(angles)
-    table = torch.cat([torch.cos(angles), s, -s, zo.expand(angles.shape[0], 2)], dim=1)
-    m = table[:, idx].view(-1, 3, 3, 3)
+    xp = np if isinstance(angles, np.ndarray) else torch
+    s = xp.sin(angles)
+    zero = angles[:, :1] * 0
+    table = xp.concatenate([xp.cos(angles), s, -s, zero, zero + 1], 1)
+    m = table[:, _EULER_INDEX].reshape(-1, 3, 3, 3)
     return m[:, 2] @ m[:, 1] @ m[:, 0]
 
 
@@ -70,17 +65,17 @@ def sobel_at(maps: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     c = (idx % w)[..., None, None] + off[None, :]  # (B, K, 1, 5): column offsets
     r = (h - 1) - ((h - 1) - r.abs()).abs()  # reflect-101 (valid for 2 <= h)
     c = (w - 1) - ((w - 1) - c.abs()).abs()
-    flat = (r * w + c).reshape(b, -1)  # (B, K*25), row offset major
-    patch = maps.reshape(b, h * w, ch).gather(1, flat[..., None].expand(-1, -1, ch))
+    flat = (r * w + c).reshape(b, -1) + torch.arange(b, device=dev)[:, None] * (h * w)  # (B, K*25)
+    patch = maps.reshape(b * h * w, ch).index_select(0, flat.reshape(-1))  # one row gather, row offset major
     smooth = torch.tensor(_SOBEL_SMOOTH, dtype=maps.dtype, device=dev)
     deriv = torch.tensor(_SOBEL_DERIV, dtype=maps.dtype, device=dev)
     kx = torch.outer(smooth, deriv).reshape(25) / _SOBEL_GAIN  # rows smooth, columns differentiate
     ky = torch.outer(deriv, smooth).reshape(25) / _SOBEL_GAIN
-    # one GEMM: (B*K, 25*C) patches times a (25*C, C*2) block kernel
+    # one GEMM: a (C*2, 25*C) block kernel times the (25*C, B*K) patches
     eye = torch.eye(ch, dtype=maps.dtype, device=dev)
     block = torch.stack([kx, ky], dim=1)[:, None, None, :] * eye[None, :, :, None]  # (25, C, C, 2)
-    out = patch.reshape(-1, 25 * ch) @ block.reshape(25 * ch, ch * 2)
-    return out.reshape(b, idx.shape[1], ch, 2)
+    out = block.reshape(25 * ch, ch * 2).T @ patch.reshape(-1, 25 * ch).T
+    return out.T.reshape(b, idx.shape[1], ch, 2)
 
 
 def jacobian_analytic(points: torch.Tensor, normals: torch.Tensor, dn: torch.Tensor) -> torch.Tensor:

@@ -17,8 +17,9 @@ with ``ok = False`` and a finite pose.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 
@@ -37,16 +38,20 @@ class Level:
 
     Attributes:
         normals_t: ``(B, 3, K)`` reference normals n_k at this level, channels first.
-        jacobian: ``(B, 3K, 5)`` float64 rows of J_k, channel-major (all x rows, then
-            all y rows, then all z rows), matching ``(B, 3, K)`` residuals.
-        jtj: ``(B, K, 25)`` float64 per-sample ``J_k^T J_k``.
+        jacobian_t: ``(B, 5, 3K)`` J^T in the working dtype, columns channel-major (all
+            x rows of J, then all y rows, then all z rows), matching flattened
+            ``(B, 3, K)`` residuals.
+        jtj: ``(B, K, 25)`` float64 per-sample ``J_k^T J_k`` (zero for padding).
+        ata_full: ``(B, 5, 5)`` float64 ``sum_k J_k^T J_k``; an iteration subtracts the
+            samples it does not share.
         factor: 1 for full resolution; ``f > 1`` for maps averaged over ``f x f``
             blocks (a coarse level: wider basin, used to initialise the next level).
     """
 
     normals_t: torch.Tensor
-    jacobian: torch.Tensor
+    jacobian_t: torch.Tensor
     jtj: torch.Tensor
+    ata_full: torch.Tensor
     factor: int
 
 
@@ -56,6 +61,7 @@ class PreparedReference:
 
     Attributes:
         points: ``(B, K, 3)`` sample points P_k, metres, reference sensor frame.
+        points_t: ``(B, 3, K)`` the same, channels first.
         curvature: ``(B, K)`` reference curvature L_ref,k (1/px).
         valid: ``(B, K)`` bool, False for padding.
         levels: coarse to fine; the last is full resolution.
@@ -64,6 +70,7 @@ class PreparedReference:
     """
 
     points: torch.Tensor
+    points_t: torch.Tensor
     curvature: torch.Tensor
     valid: torch.Tensor
     levels: list[Level]
@@ -118,14 +125,14 @@ def metric_points(height: torch.Tensor, idx: torch.Tensor, m_per_px: float) -> t
 
 
 def _level(points, normals, dn, valid, factor, jacobian) -> Level:
-    """Jacobian rows and per-sample ``J^T J`` for normals ``(B, K, 3)`` and their
-    derivatives per metre ``(B, K, 3, 2)``."""
-    b = points.shape[0]
+    """Jacobian rows and the full normal matrix for normals ``(B, K, 3)`` and their
+    derivatives per metre ``(B, K, 3, 2)``, in the dtype of ``points``."""
+    b, k = valid.shape
     jac = JACOBIANS[jacobian](points.double(), normals.double(), dn.double())
     jac = jac * valid[..., None, None]  # (B, K, 3, 5)
-    jtj = torch.einsum("bkci,bkcj->bkij", jac, jac).reshape(b, -1, 25)
-    rows = jac.transpose(1, 2).reshape(b, -1, 5)
-    return Level(normals.transpose(1, 2).contiguous(), rows, jtj, factor)
+    jtj = (jac.mT @ jac).view(b, k, 25)
+    jac_t = jac.permute(0, 3, 2, 1).reshape(b, 5, 3 * k)  # columns channel-major
+    return Level(normals.transpose(1, 2).contiguous(), jac_t.to(points.dtype), jtj, jtj.sum(1).view(b, 5, 5), factor)
 
 
 def _coarse_level(normals_map, points, valid, s, factor, jacobian) -> Level:
@@ -138,7 +145,7 @@ def _coarse_level(normals_map, points, valid, s, factor, jacobian) -> Level:
     kernels = torch.stack([torch.outer(smooth, deriv), torch.outer(deriv, smooth)])[:, None] / 128.0
     padded = F.pad(pooled.reshape(b * 3, 1, *pooled.shape[2:]), (2, 2, 2, 2), mode="reflect")
     sob = F.conv2d(padded, kernels).reshape(b, 6, *pooled.shape[2:])  # (x-deriv, y-deriv) per channel
-    grid = points[..., :2] * _grid_scale((h, w), s, points, align_corners=False)
+    grid = points[..., :2] * torch.as_tensor(_grid_scale((h, w), s, False), dtype=points.dtype, device=points.device)
     normals = _sample(pooled, grid, "bilinear", False).transpose(1, 2)
     dn = _sample(sob, grid, "bilinear", False).transpose(1, 2).reshape(b, -1, 3, 2) / (factor * s)
     vf = valid.to(normals.dtype)[..., None]
@@ -170,25 +177,29 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     normals_map = ref.normals.to(dtype)
     vf = valid.to(dtype)
     points = metric_points(ref.height.to(dtype), idx, s) * vf[..., None]
-    normals = normals_map.reshape(b, -1, 3).gather(1, idx[..., None].expand(-1, -1, 3)) * vf[..., None]
+    normals = _rows(normals_map, idx) * vf[..., None]
     curv = ref.curvature.to(dtype).reshape(b, -1).gather(1, idx) * vf
     levels = [_coarse_level(normals_map, points, valid, s, f, config.jacobian)
               for f in sorted(config.coarse_factors, reverse=True)]
     levels.append(_level(points, normals, sobel_at(normals_map, idx) / s, valid, 1, config.jacobian))
-    return PreparedReference(points, curv, valid, levels, (h, w), s)
+    return PreparedReference(points, points.mT.contiguous(), curv, valid, levels, (h, w), s)
 
 
-def _as_batch(x: torch.Tensor, b: int) -> torch.Tensor:
-    return x.expand(b, *x.shape[1:]) if x.shape[0] == 1 and b > 1 else x
+def _rows(maps: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
+    """Channel vectors of ``(B, H, W, C)`` maps at ``(B, K)`` row-major pixel indices
+    -> ``(B, K, C)`` (one row gather)."""
+    b, h, w, c = maps.shape
+    flat = idx + torch.arange(b, device=idx.device)[:, None] * (h * w)
+    return maps.reshape(b * h * w, c).index_select(0, flat.reshape(-1)).view(b, -1, c)
 
 
-def _grid_scale(shape: tuple[int, int], s: float, like: torch.Tensor, align_corners: bool = True) -> torch.Tensor:
+def _grid_scale(shape: tuple[int, int], s: float, align_corners: bool = True) -> np.ndarray:
     """Factor taking metric ``(x, y)`` (origin at the image centre) to grid_sample
     coordinates. ``(2,)``."""
     h, w = shape
     if align_corners:  # pixel centres 0 and W-1 at -1 and 1
-        return torch.tensor([2.0 / (s * (w - 1)), 2.0 / (s * (h - 1))], dtype=like.dtype, device=like.device)
-    return torch.tensor([2.0 / (s * w), 2.0 / (s * h)], dtype=like.dtype, device=like.device)  # image edges
+        return np.array([2.0 / (s * (w - 1)), 2.0 / (s * (h - 1))])
+    return np.array([2.0 / (s * w), 2.0 / (s * h)])  # image edges
 
 
 def _sample(maps: torch.Tensor, grid: torch.Tensor, mode: str, align_corners: bool = True) -> torch.Tensor:
@@ -204,74 +215,168 @@ def _inside(grid: torch.Tensor) -> torch.Tensor:
     return grid.amin(-1) >= -1.0
 
 
-def _solve(ata: torch.Tensor, atb: torch.Tensor, ridge: torch.Tensor, damping: float
-           ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Damped 5x5 normal equations ``(A + ridge + damping diag(A)) x = b`` by Cholesky
-    (Marquardt scaling; the tiny ``ridge`` keeps unobservable directions at 0 instead of
-    NaN). Returns ``(delta (B, 5), solved (B,) bool)``."""
+def _solve(ata: np.ndarray, atb: np.ndarray, ridge: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
+    """Damped 5x5 normal equations ``(A + ridge + damping diag(A)) x = b`` (Marquardt
+    scaling; the tiny ``ridge`` keeps unobservable directions at 0 instead of NaN).
+    ``(b, 5, 5)``, ``(b, 5)`` -> ``(delta (b, 5), solved (b,) bool)``; an unsolvable
+    pair gets a zero step and ``solved = False``."""
     damped = ata + ridge
     if damping > 0:
-        damped = damped + torch.diag_embed(damping * ata.diagonal(dim1=1, dim2=2))
-    chol, info = torch.linalg.cholesky_ex(damped)
-    return torch.cholesky_solve(atb.unsqueeze(-1), chol).squeeze(-1), info == 0
+        damped = damped + damping * ata * np.eye(5)
+    try:
+        delta = np.linalg.solve(damped, atb[..., None])[..., 0]
+    except np.linalg.LinAlgError:  # a singular pair: solve one by one
+        delta = np.full_like(atb, np.nan)
+        for i in range(len(atb)):
+            try:
+                delta[i] = np.linalg.solve(damped[i], atb[i])
+            except np.linalg.LinAlgError:
+                pass
+    solved = np.isfinite(delta).all(1)
+    return np.where(solved[:, None], delta, 0.0), solved
 
 
 @dataclass
 class _State:
-    """Gauss-Newton state of ``B`` pairs: ``tar_T_ref = [rot | (txy, 0)]`` (float64)."""
+    """Gauss-Newton state of ``B`` pairs, host float64: ``tar_T_ref = [rot | (txy, 0)]``."""
 
-    rot: torch.Tensor  # (B, 3, 3)
-    txy: torch.Tensor  # (B, 2)
-    active: torch.Tensor  # (B,) still iterating
-    lost: torch.Tensor  # (B,) too few shared samples or an unsolvable step
-    converged: torch.Tensor  # (B,)
-    iterations: torch.Tensor  # (B,) int64
-    ata: torch.Tensor  # (B, 5, 5) last normal equations
+    rot: np.ndarray  # (B, 3, 3)
+    txy: np.ndarray  # (B, 2)
+    active: np.ndarray  # (B,) still iterating
+    lost: np.ndarray  # (B,) too few shared samples or an unsolvable step
+    converged: np.ndarray  # (B,)
+    iterations: np.ndarray  # (B,) int64
+    ata: np.ndarray  # (B, 5, 5) last normal equations
+
+    def take(self, ids: np.ndarray) -> "_State":
+        return _State(*(getattr(self, f.name)[ids] for f in fields(self)))
+
+    def put(self, ids: np.ndarray, part: "_State") -> None:
+        for f in fields(self):
+            getattr(self, f.name)[ids] = getattr(part, f.name)
 
 
-def _gauss_newton(st: _State, lvl: Level, points, valid, n_map, c_map, scale, align_corners, config,
+@dataclass
+class _Pairs:
+    """What an iteration reads for the pairs it works on. Reference tensors keep batch 1
+    when one reference is broadcast to every target."""
+
+    points_t: torch.Tensor  # (b or 1, 3, K)
+    valid: torch.Tensor  # (b or 1, K)
+    normals_t: torch.Tensor  # (b or 1, 3, K)
+    jacobian_t: torch.Tensor  # (b or 1, 5, 3K)
+    jtj: torch.Tensor  # (b or 1, K, 25) float64
+    ata_full: torch.Tensor  # (b or 1, 5, 5) float64
+    n_map: torch.Tensor  # (b, 3, H, W)
+    c_map: torch.Tensor  # (b, 1, H, W)
+
+    def take(self, ids: np.ndarray) -> "_Pairs":
+        """The pairs ``ids`` (references of batch 1 stay shared)."""
+        b = self.n_map.shape[0]
+        idx = torch.from_numpy(ids).to(self.n_map.device)
+        return _Pairs(*(x if x.shape[0] == 1 and b > 1 else x[idx] for x in (getattr(self, f.name) for f in fields(self))))
+
+
+def _bmv(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """Matrices times vectors: ``(b or 1, M, N)`` and ``(b, N)`` -> ``(b, M)``."""
+    return (m[0] @ x.T).T if m.shape[0] == 1 else torch.bmm(m, x.unsqueeze(-1)).squeeze(-1)
+
+
+def _shared_normal_matrix(pairs: _Pairs, shared: torch.Tensor) -> torch.Tensor:
+    """``sum_k J_k^T J_k`` over the shared samples, in float64. ``(b, K)`` -> ``(b, 5, 5)``.
+
+    One reference: a single ``(b, K) x (K, 25)`` product. One reference per pair:
+    the full matrices minus the valid samples that are not shared (usually few), so
+    that no pair re-reads all of its ``J^T J``."""
+    b, k = shared.shape
+    if pairs.jtj.shape[0] == 1:
+        return (shared.double() @ pairs.jtj[0]).view(b, 5, 5)
+    pair, sample = (pairs.valid & ~shared).nonzero(as_tuple=True)
+    part = torch.zeros((b, 25), dtype=torch.float64, device=shared.device)
+    part.index_add_(0, pair, pairs.jtj.view(-1, 25).index_select(0, sample + pair * k))
+    return pairs.ata_full - part.view(b, 5, 5)
+
+
+def _linearise(pairs: _Pairs, motion: torch.Tensor, align_corners: bool) -> tuple[torch.Tensor, ...]:
+    """Normal equations of the residual ``R^T N_tar(x') - n`` at the current poses.
+
+    Args:
+        pairs: the pairs.
+        motion: ``(b, 5, 4)`` poses packed by :func:`_motion`.
+
+    Returns:
+        ``ata (b, 5, 5)``, ``atb (b, 5)`` (float64) and the shared-sample count ``(b,)``.
+    """
+    b, k = motion.shape[0], pairs.points_t.shape[2]
+    grid = torch.baddbmm(motion[:, :2, 3:], motion[:, :2, :3], pairs.points_t.expand(b, -1, -1)).mT  # (b, K, 2)
+    near = _sample(pairs.c_map, grid, "nearest", align_corners).view(b, k)
+    shared = (near > 0.5) & _inside(grid) & pairs.valid
+    res = torch.bmm(motion[:, 2:, :3], _sample(pairs.n_map, grid, "bilinear", align_corners)) - pairs.normals_t
+    atb = _bmv(pairs.jacobian_t, (res * shared.unsqueeze(1)).view(b, 3 * k)).double()
+    return _shared_normal_matrix(pairs, shared), atb, shared.sum(1)
+
+
+def _motion(rot: np.ndarray, txy: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Pack the poses for :func:`_linearise`: ``(b, 5, 4)`` with ``[:2, :3]`` taking a
+    metric point to grid coordinates (``R[:2] * scale``), ``[:2, 3]`` the grid offset
+    ``txy * scale`` and ``[2:, :3]`` the rotation's transpose ``R^T``."""
+    out = np.zeros((len(rot), 5, 4))
+    out[:, :2, :3] = rot[:, :2] * scale[:, None]
+    out[:, :2, 3] = txy * scale
+    out[:, 2:, :3] = rot.transpose(0, 2, 1)
+    return out
+
+
+def _ridge(ata_full: torch.Tensor) -> np.ndarray:
+    """``1e-12`` of each pair's largest diagonal entry on the diagonal, host float64.
+    ``(b, 5, 5)`` -> ``(b, 5, 5)``."""
+    diag = ata_full.diagonal(dim1=1, dim2=2).cpu().numpy()
+    return 1e-12 * diag.max(1)[:, None, None] * np.eye(5)
+
+
+def _gauss_newton(st: _State, pairs: _Pairs, scale: np.ndarray, align_corners: bool, config: NormalFlowConfig,
                   max_iters: int, min_iters: int, tol_scale: float) -> _State:
-    """Inverse-compositional Gauss-Newton iterations of one level (method.md 4.4)."""
-    b, k = valid.shape
-    dt = points.dtype
-    jtj, jac = _as_batch(lvl.jtj, b), _as_batch(lvl.jacobian, b)
-    normals_t = _as_batch(lvl.normals_t, b)
-    ridge = torch.diag_embed(1e-12 * jtj.sum(1).view(b, 5, 5).diagonal(dim1=1, dim2=2).amax(1, keepdim=True)
-                             .expand(b, 5))
-    # squared step norms (rotation, translation) against squared tolerances in one product
-    split = torch.tensor([[1.0, 0.0]] * 3 + [[0.0, 1.0]] * 2, dtype=torch.float64, device=points.device)
-    tol2 = torch.tensor([config.rot_tol, config.trans_tol_m], dtype=torch.float64, device=points.device) ** 2
-    tol2 = tol2 * tol_scale**2
-    rot, txy, active, lost, converged = st.rot, st.txy, st.active.clone(), st.lost.clone(), st.converged.clone()
-    iterations, ata = st.iterations.clone(), st.ata
+    """Inverse-compositional Gauss-Newton iterations of one level (method.md 4.4) for the
+    active pairs of ``st``: per-sample work in torch on the maps' device, the 5x5 solves
+    and pose updates in host float64. The working set shrinks as pairs finish (halved
+    at a time, so copies stay bounded); a finished pair's state is frozen."""
+    ids = np.flatnonzero(st.active)
+    out = _State(*(getattr(st, f.name).copy() for f in fields(st)))
+    if len(ids) == 0:
+        return out
+    if len(ids) < len(st.active):
+        pairs = pairs.take(ids)
+    cur, ridge = st.take(ids), _ridge(pairs.ata_full)
+    dev, dt = pairs.points_t.device, pairs.points_t.dtype
+    tol2 = (np.array([config.rot_tol, config.trans_tol_m]) * tol_scale) ** 2
     for i in range(max_iters):
-        r_dt = rot.to(dt)
-        grid = torch.baddbmm((txy.to(dt) * scale).unsqueeze(1), points, (r_dt[:, :2] * scale[:, None]).transpose(1, 2))
-        near = _sample(c_map, grid, "nearest", align_corners).view(b, k)
-        shared = (near > 0.5) & _inside(grid) & valid
-        # residual R^T N_tar(x') - n, (B, 3, K), and the normal equations in float64
-        res = torch.bmm(r_dt.transpose(1, 2), _sample(n_map, grid, "bilinear", align_corners)) - normals_t
-        w = shared.to(torch.float64)
-        ata = torch.bmm(w.unsqueeze(1), jtj).view(b, 5, 5)
-        atb = torch.bmm((res.to(torch.float64) * w.unsqueeze(1)).view(b, 1, 3 * k), jac).view(b, 5)
+        motion = torch.from_numpy(_motion(cur.rot, cur.txy, scale)).to(device=dev, dtype=dt)
+        ata, atb, n_shared = (x.cpu().numpy() for x in _linearise(pairs, motion, align_corners))
+        cur.ata = ata
         delta, solved = _solve(ata, atb, ridge, config.lm_damping)
         # too few shared samples, or an unsolvable step: lost (the pose stays as it was)
-        solved &= torch.isfinite(delta).all(1)
-        bad = active & ((shared.sum(1) < config.min_shared) | ~solved)
-        lost |= bad
-        active &= ~bad
-        delta = torch.where(active[:, None], delta, torch.zeros_like(delta))
-        # T <- T dT^-1 with dT = [R(w) | (tx, ty, 0)]; tz stays 0 during the iterations
-        rot = rot @ euler_to_matrix(delta[:, :3]).transpose(1, 2)
-        txy = txy - (rot[:, :2, :2] @ delta[:, 3:, None]).squeeze(-1)
-        iterations += active
+        bad = cur.active & ((n_shared < config.min_shared) | ~solved)
+        cur.lost |= bad
+        cur.active &= ~bad
+        delta[~cur.active] = 0.0
+        # T <- T dT^-1 with dT = [R(w) | (tx, ty, 0)], R(w) = Rz Ry Rx; tz stays 0 here
+        cur.rot = cur.rot @ euler_to_matrix(delta[:, :3]).transpose(0, 2, 1)
+        cur.txy = cur.txy - (cur.rot[:, :2, :2] @ delta[:, 3:, None])[..., 0]
+        cur.iterations += cur.active
         if i + 1 >= min_iters:
-            step = ((delta.square() @ split) < tol2).all(1)
-            converged |= active & step
-            active &= ~step
-            if not bool(active.any()):
+            step = ((delta[:, :3] ** 2).sum(1) < tol2[0]) & ((delta[:, 3:] ** 2).sum(1) < tol2[1])
+            cur.converged |= cur.active & step
+            cur.active &= ~step
+            n_active = int(cur.active.sum())
+            if n_active == 0:
                 break
-    return _State(rot, txy, active, lost, converged, iterations, ata)
+            if 2 * n_active <= len(ids):  # drop the finished pairs
+                out.put(ids, cur)
+                keep = np.flatnonzero(cur.active)
+                ids, cur, pairs = ids[keep], cur.take(keep), pairs.take(keep)
+                ridge = _ridge(pairs.ata_full)
+    out.put(ids, cur)
+    return out
 
 
 def register_prepared(
@@ -315,49 +420,55 @@ def register_prepared(
     if not bool(torch.isfinite(init).all()):
         raise RegistrationError("init_tar_T_ref contains NaN or Inf")
 
-    points, valid = _as_batch(prep.points, b), _as_batch(prep.valid, b)
     n_map = tar.normals.to(device=dev, dtype=dt).permute(0, 3, 1, 2)  # a view: no copy
     c_map = tar.contact.to(device=dev, dtype=dt).unsqueeze(1)
-    flags = torch.zeros(b, dtype=torch.bool, device=dev)
-    st = _State(init[:, :3, :3].expand(b, 3, 3), init[:, :2, 3].expand(b, 2), ~flags, flags, flags,
-                torch.zeros(b, dtype=torch.int64, device=dev), torch.zeros((b, 5, 5), dtype=torch.float64, device=dev))
-    for lvl in prep.levels[:-1]:  # coarse levels: block-averaged target maps
+    init = init.cpu().numpy()
+    flags = np.zeros(b, dtype=bool)
+    st = _State(np.broadcast_to(init[:, :3, :3], (b, 3, 3)).copy(), np.broadcast_to(init[:, :2, 3], (b, 2)).copy(),
+                ~flags, flags.copy(), flags.copy(), np.zeros(b, dtype=np.int64), np.zeros((b, 5, 5)))
+    for lvl in prep.levels:
         f = lvl.factor
-        scale = _grid_scale(prep.shape, prep.m_per_px, points, align_corners=False)
-        st = _gauss_newton(st, lvl, points, valid, F.avg_pool2d(n_map, f), F.avg_pool2d(c_map, f), scale, False,
-                           config, config.coarse_max_iters, 1, float(f))
-        st.active, st.converged = ~st.lost, torch.zeros_like(st.lost)
-    scale = _grid_scale(prep.shape, prep.m_per_px, points)
-    st = _gauss_newton(st, prep.levels[-1], points, valid, n_map, c_map, scale, True, config,
-                       config.max_iters, config.min_iters, 1.0)
-    T = torch.eye(4, dtype=torch.float64, device=dev).repeat(b, 1, 1)
-    T[:, :3, :3] = st.rot
-    T[:, :2, 3] = st.txy
+        coarse = f > 1  # coarse levels: block-averaged target maps, image-edge grid convention
+        pairs = _Pairs(prep.points_t, prep.valid, lvl.normals_t, lvl.jacobian_t, lvl.jtj, lvl.ata_full,
+                       F.avg_pool2d(n_map, f) if coarse else n_map, F.avg_pool2d(c_map, f) if coarse else c_map)
+        scale = _grid_scale(prep.shape, prep.m_per_px, align_corners=not coarse)
+        if coarse:
+            st = _gauss_newton(st, pairs, scale, False, config, config.coarse_max_iters, 1, float(f))
+            st.active, st.converged = ~st.lost, np.zeros_like(st.lost)
+        else:
+            st = _gauss_newton(st, pairs, scale, True, config, config.max_iters, config.min_iters, 1.0)
+    T = torch.eye(4, dtype=torch.float64).repeat(b, 1, 1)
+    T[:, :3, :3] = torch.from_numpy(st.rot)
+    T[:, :2, 3] = torch.from_numpy(st.txy)
     h_map = tar.height.to(device=dev, dtype=dt).unsqueeze(1)
     maps = (h_map, tar.curvature.to(device=dev, dtype=dt).unsqueeze(1), c_map)
-    return _finish(prep, points, valid, maps, T, st, config, scale)
+    return _finish(prep, maps, T.to(dev), st, config, torch.as_tensor(scale, dtype=dt, device=dev))
 
 
-def _finish(prep, points, valid, maps, T, st, config, scale):
-    """tz from the height difference, CCS/SCR, degeneracy, and the ok flag."""
-    b, k = valid.shape
+def _finish(prep: PreparedReference, maps, T: torch.Tensor, st: _State, config: NormalFlowConfig,
+            scale: torch.Tensor) -> RegistrationResult:
+    """tz from the height difference, CCS/SCR, degeneracy, and the ok flag.
+
+    ``maps``: the targets' ``(B, 1, H, W)`` height, curvature and contact; ``T``
+    ``(B, 4, 4)`` float64 with tz still 0 (set here)."""
+    b, k = T.shape[0], prep.points.shape[1]
+    points, valid = prep.points, prep.valid  # batch B or 1
     dt = points.dtype
     h_map, l_map, c_map = maps
-    moved = torch.baddbmm(T[:, :3, 3].to(dt).unsqueeze(1), points, T[:, :3, :3].to(dt).transpose(1, 2))
-    grid = moved[..., :2] * scale
+    moved = torch.bmm(T[:, :3, :3].to(dt), prep.points_t.expand(b, -1, -1))  # (B, 3, K); tz is 0
+    grid = ((moved[:, :2] + T[:, :2, 3:].to(dt)) * scale[:, None]).mT
     inside = _inside(grid) & valid
     # tz: mean of s*H_tar - (R P)_z over samples landing in the target contact (nearest)
     vz = ((_sample(c_map, grid, "nearest").view(b, k) > 0.5) & inside).double()
     n_z = vz.sum(1)
     h_tar = _sample(h_map, grid, "bilinear").view(b, k).double()
-    dz = (h_tar * prep.m_per_px - moved[..., 2].double()) * vz
+    dz = (h_tar * prep.m_per_px - moved[:, 2].double()) * vz
     tz_ok = n_z > 0
     T[:, 2, 3] = torch.where(tz_ok, dz.sum(1) / n_z.clamp_min(1.0), torch.zeros_like(n_z))
     # CCS and SCR over the samples landing in the target contact (bilinear)
-    sh = (_sample(c_map, grid, "bilinear").view(b, k) > 0.5) & inside
-    shf = sh.double()
+    shf = ((_sample(c_map, grid, "bilinear").view(b, k) > 0.5) & inside).double()
     l_tar = _sample(l_map, grid, "bilinear").view(b, k).double()
-    l_ref = _as_batch(prep.curvature, b).double()
+    l_ref = prep.curvature.double()
     scr = (l_ref.abs() * shf).sum(1) / l_ref.abs().sum(1)
     ccs = (l_ref * l_tar * shf).sum(1) / torch.sqrt((l_ref.square() * shf).sum(1) * (l_tar.square() * shf).sum(1))
     # degenerate: eigenvalue ratio of the normal equations, translations scaled by the
@@ -366,15 +477,16 @@ def _finish(prep, points, valid, maps, T, st, config, scale):
     vf = valid.double()[..., None]
     centre = (xy * vf).sum(1, keepdim=True) / vf.sum(1, keepdim=True).clamp_min(1.0)
     spread = ((xy - centre).square() * vf).sum((1, 2)) / vf.sum((1, 2)).clamp_min(1.0)
-    ones = torch.ones((b, 3), dtype=torch.float64, device=T.device)
-    sc = torch.cat([ones, spread.sqrt()[:, None].expand(b, 2)], dim=1)
-    eig = torch.linalg.eigvalsh(st.ata * sc[:, :, None] * sc[:, None, :])
+    sc = torch.ones((b, 5), dtype=torch.float64, device=T.device)
+    sc[:, 3:] = spread.sqrt()[:, None]
+    eig = torch.linalg.eigvalsh(torch.from_numpy(st.ata).to(T.device) * sc[:, :, None] * sc[:, None, :])
     degenerate = ~(eig[:, 0] > config.degenerate_eig * eig[:, -1])
-    ok = ~st.lost & tz_ok & ~degenerate
+    flags = {name: torch.from_numpy(getattr(st, name)).to(T.device) for name in ("lost", "converged", "iterations")}
+    ok = ~flags["lost"] & tz_ok & ~degenerate
     if config.check_scores:
         ok &= (ccs >= config.ccs_threshold) & (scr >= config.scr_threshold)
-    return RegistrationResult(tar_T_ref=T, ccs=ccs, scr=scr, n_shared=sh.sum(1), iterations=st.iterations,
-                              converged=st.converged, ok=ok)
+    return RegistrationResult(tar_T_ref=T, ccs=ccs, scr=scr, n_shared=shf.sum(1).long(), iterations=flags["iterations"],
+                              converged=flags["converged"], ok=ok)
 
 
 def register(

@@ -54,6 +54,26 @@ def top_k_mask(score: torch.Tensor, k: int) -> torch.Tensor:
     return torch.where(kth >= 0, chosen, score >= 0)
 
 
+def top_k_indices(score: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row-major indices of the :func:`top_k_mask` selection, padded like
+    :func:`mask_to_indices` (to the largest row count). One ``topk`` and a sort of
+    ``k`` indices; rows where ``topk`` took a different member of a tie at the k-th
+    value fall back to the mask.
+
+    ``(B, N)`` -> ``(idx (B, K) int64, valid (B, K) bool)``.
+    """
+    n = score.shape[1]
+    vals, ids = torch.topk(score, min(k, n), dim=1, sorted=False)
+    kth = vals.amin(1, keepdim=True)
+    unfair = ((score == kth).sum(1) > (vals == kth).sum(1)) & (kth[:, 0] >= 0)
+    if bool(unfair.any()):
+        return mask_to_indices(top_k_mask(score, k))
+    ids = torch.where(vals >= 0, ids, n).sort(1).values  # unselected (negative) last
+    valid = ids < n
+    width = max(int(valid.sum(1).max()), 1)
+    return torch.where(valid, ids, 0)[:, :width], valid[:, :width]
+
+
 def select_samples(
     curvature: torch.Tensor,
     contact: torch.Tensor,
@@ -89,12 +109,10 @@ def select_samples(
     if n_samples < 1:
         raise ValueError(f"n_samples must be >= 1 or None, got {n_samples}")
     if rule == "topk":
-        mask = top_k_mask(torch.where(c, a, torch.full_like(a, -1.0)), n_samples)
-    elif rule == "threshold":
-        k = min(n_samples, a.shape[1])
-        tau = torch.topk(a, k, dim=1).values[:, -1:] + 1e-6
-        mask = a >= tau
-    else:
+        return top_k_indices(torch.where(c, a, -1.0), n_samples)
+    if rule == "random":
         r = torch.rand(a.shape, generator=generator, dtype=torch.float64).to(a.device)
-        mask = top_k_mask(torch.where(c, r, torch.full_like(r, -1.0)), n_samples)
-    return mask_to_indices(mask)
+        return top_k_indices(torch.where(c, r, -1.0), n_samples)
+    k = min(n_samples, a.shape[1])
+    tau = torch.topk(a, k, dim=1).values[:, -1:] + 1e-6
+    return mask_to_indices(a >= tau)

@@ -87,7 +87,7 @@ def test_jacobian_matches_finite_differences_of_the_true_residual():
             r.append(_true_normals(surf, q[:, 0], q[:, 1]) @ R - n0)
         cols.append((r[0] - r[1]) / (2 * e))
     fd = torch.stack(cols, dim=-1)  # (K, 3, 5)
-    J = prep.levels[-1].jacobian[0].view(3, -1, 5).transpose(0, 1)[keep]
+    J = prep.levels[-1].jacobian_t[0].view(5, 3, -1).permute(2, 1, 0)[keep]
     err = (fd - J).norm(dim=(0, 1)) / fd.norm(dim=(0, 1))
     assert (err < 0.1).all(), err
 
@@ -99,5 +99,6 @@ def test_prepared_jacobian_kinds_agree(kind):
     ref = frames(bumpy(0), [torch.eye(4, dtype=torch.float64)])
     a = prepare_reference(ref, NormalFlowConfig(jacobian="analytic", n_samples=500))
     b = prepare_reference(ref, NormalFlowConfig(jacobian=kind, n_samples=500))
-    assert torch.allclose(a.levels[-1].jacobian, b.levels[-1].jacobian, rtol=1e-9, atol=1e-9)
     assert torch.allclose(a.levels[-1].jtj, b.levels[-1].jtj, rtol=1e-9, atol=1e-6)
+    assert torch.allclose(a.levels[-1].jacobian_t, b.levels[-1].jacobian_t, rtol=1e-9, atol=1e-9)
+    assert torch.allclose(a.levels[-1].ata_full, b.levels[-1].ata_full, rtol=1e-9, atol=1e-6)

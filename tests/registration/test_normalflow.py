@@ -94,6 +94,24 @@ def test_batch_equals_single(scene, batched):
         _close(register_pair(ref, tars[i], init[i:i + 1]), batched[i])
 
 
+@pytest.mark.parametrize("own_references", [False, True])
+def test_pairs_finishing_at_different_iterations(scene, own_references):
+    """Pairs that stop early leave the working batch; the ones still iterating, and the
+    bookkeeping (iterations, convergence), must match one-pair runs. With one reference
+    per pair the normal equations come from the subtraction path."""
+    ref, tars, _, init = scene
+    pick = [0, 5, 7, 9, 10]
+    far = init[pick].clone()
+    far[1] = rigid(rz_deg=120)  # starts far away: runs to the cap or gets lost
+    refs = Frame.cat([ref] * len(pick)) if own_references else ref
+    res = register(refs, tars[pick], far)
+    assert len(set(res.iterations.tolist())) > 1
+    for j, i in enumerate(pick):
+        one = register_pair(ref, tars[i], far[j:j + 1])
+        _close(one, res[j])
+        assert int(one.iterations[0]) == int(res.iterations[j]) and bool(one.converged[0]) == bool(res.converged[j])
+
+
 def test_prepared_reference_is_reused(scene, batched):
     ref, tars, _, init = scene
     prep = prepare_reference(ref)

@@ -30,10 +30,11 @@ class TestMaskToIndices:
 
 
 class TestTopK:
-    def test_matches_stable_sort(self, device, dtype):
+    @pytest.mark.parametrize("ties", [False, True])
+    def test_matches_stable_sort(self, device, dtype, ties):
         lap, contact = _random_maps(dtype=dtype)
-        # heavy ties: quantise, so that the tie rule decides
-        lap = (lap * 20).round() / 20
+        if ties:  # heavy ties: quantise, so that the tie rule decides
+            lap = (lap * 20).round() / 20
         idx, valid = select_samples(lap.to(device), contact.to(device), 300, "topk")
         for i in range(lap.shape[0]):
             a = np.where(contact[i].numpy().ravel(), np.abs(lap[i].numpy().ravel()), -1.0)
