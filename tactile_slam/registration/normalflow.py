@@ -63,6 +63,8 @@ class PreparedReference:
         points: ``(B, K, 3)`` sample points P_k, metres, reference sensor frame.
         points_t: ``(B, 3, K)`` the same, channels first.
         curvature: ``(B, K)`` reference curvature L_ref,k (1/px).
+        spread: ``(B,)`` float64 RMS distance of the samples from their centroid (m),
+            scaling translations in the degeneracy test.
         valid: ``(B, K)`` bool, False for padding.
         levels: coarse to fine; the last is full resolution.
         shape: ``(H, W)`` of the image.
@@ -72,6 +74,7 @@ class PreparedReference:
     points: torch.Tensor
     points_t: torch.Tensor
     curvature: torch.Tensor
+    spread: torch.Tensor
     valid: torch.Tensor
     levels: list[Level]
     shape: tuple[int, int]
@@ -182,7 +185,16 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     levels = [_coarse_level(normals_map, points, valid, s, f, config.jacobian)
               for f in sorted(config.coarse_factors, reverse=True)]
     levels.append(_level(points, normals, sobel_at(normals_map, idx) / s, valid, 1, config.jacobian))
-    return PreparedReference(points, points.mT.contiguous(), curv, valid, levels, (h, w), s)
+    return PreparedReference(points, points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s)
+
+
+def _spread(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
+    """RMS distance of the valid samples' ``(x, y)`` from their centroid, float64.
+    ``(B, K, 3)``, ``(B, K)`` -> ``(B,)``."""
+    xy = points[..., :2].double()
+    vf = valid.double()[..., None]
+    centre = (xy * vf).sum(1, keepdim=True) / vf.sum(1, keepdim=True).clamp_min(1.0)
+    return (((xy - centre).square() * vf).sum((1, 2)) / vf.sum((1, 2)).clamp_min(1.0)).sqrt()
 
 
 def _rows(maps: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
@@ -452,8 +464,7 @@ def _finish(prep: PreparedReference, maps, T: torch.Tensor, st: _State, config: 
     ``maps``: the targets' ``(B, 1, H, W)`` height, curvature and contact; ``T``
     ``(B, 4, 4)`` float64 with tz still 0 (set here)."""
     b, k = T.shape[0], prep.points.shape[1]
-    points, valid = prep.points, prep.valid  # batch B or 1
-    dt = points.dtype
+    valid, dt = prep.valid, prep.dtype  # batch B or 1
     h_map, l_map, c_map = maps
     moved = torch.bmm(T[:, :3, :3].to(dt), prep.points_t.expand(b, -1, -1))  # (B, 3, K); tz is 0
     grid = ((moved[:, :2] + T[:, :2, 3:].to(dt)) * scale[:, None]).mT
@@ -473,12 +484,8 @@ def _finish(prep: PreparedReference, maps, T: torch.Tensor, st: _State, config: 
     ccs = (l_ref * l_tar * shf).sum(1) / torch.sqrt((l_ref.square() * shf).sum(1) * (l_tar.square() * shf).sum(1))
     # degenerate: eigenvalue ratio of the normal equations, translations scaled by the
     # samples' RMS spread so that both parts measure displacement
-    xy = points[..., :2].double()
-    vf = valid.double()[..., None]
-    centre = (xy * vf).sum(1, keepdim=True) / vf.sum(1, keepdim=True).clamp_min(1.0)
-    spread = ((xy - centre).square() * vf).sum((1, 2)) / vf.sum((1, 2)).clamp_min(1.0)
     sc = torch.ones((b, 5), dtype=torch.float64, device=T.device)
-    sc[:, 3:] = spread.sqrt()[:, None]
+    sc[:, 3:] = prep.spread[:, None]
     eig = torch.linalg.eigvalsh(torch.from_numpy(st.ata).to(T.device) * sc[:, :, None] * sc[:, None, :])
     degenerate = ~(eig[:, 0] > config.degenerate_eig * eig[:, -1])
     flags = {name: torch.from_numpy(getattr(st, name)).to(T.device) for name in ("lost", "converged", "iterations")}
