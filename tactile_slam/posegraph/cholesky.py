@@ -186,8 +186,8 @@ class BlockCholesky:
             F = F.reshape(m, m)
             for ch, cmap in zip(fr.children, fr.child_maps):
                 U = updates[ch]
-                if U is not None and U.numel():
-                    F[cmap[:, None], cmap[None, :]] += U
+                if U is not None and U.numel():  # extend-add: whole rows out, columns added, rows back
+                    F.index_copy_(0, cmap, F.index_select(0, cmap).index_add_(1, cmap, U))
                 updates[ch] = None
             if k == 0:
                 self._L11.append(torch.zeros(0, 0, dtype=torch.float64))
@@ -200,7 +200,7 @@ class BlockCholesky:
             L21 = torch.linalg.solve_triangular(L11.mT, F[k:, :k], upper=True, left=False)
             self._L11.append(L11)
             self._L21.append(L21)
-            updates[f] = F[k:, k:] - L21 @ L21.mT if m > k else None
+            updates[f] = F[k:, k:].addmm_(L21, L21.mT, alpha=-1.0) if m > k else None
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Solve ``A x = rhs`` with the last factorisation; ``rhs`` ``(n * b,)``."""
