@@ -215,6 +215,9 @@ class ReconConfig:
     poisson_cell_mm: float = 0.1
     poisson_min_depth: int = 6  # the 0.1 mm cell rule decides; 8 costs 5x for no gain (docs)
     poisson_max_depth: int = 11
+    # Poisson input budget: more voxel-averaged points than this coarsen the voxel and
+    # the cell together (bounds meshing time and memory on large scans; docs/reconstruction.md)
+    poisson_max_points: int = 1_000_000
     trim_density_quantile: float = 0.02
     trim_distance_mm: float = 0.5
 

@@ -66,38 +66,31 @@ class TriMesh:
 
 
 def grid_faces(mask: torch.Tensor) -> torch.Tensor:
-    """Triangulate the pixels of a mask (method.md 8.2).
+    """Triangulate the pixels of one mask or a stack of masks (method.md 8.2).
 
     For each masked pixel (r, c): triangle (r,c)-(r+1,c)-(r,c+1) when both others are
     masked, and (r+1,c)-(r+1,c+1)-(r,c+1) when (r+1,c+1) is masked too. With x right,
     y down and z out of the gel, face normals point to -z, the object's outside.
+    Triangles never join pixels of different masks in a stack.
 
     Args:
-        mask: ``(H, W)`` bool.
+        mask: ``(H, W)`` or ``(K, H, W)`` bool.
 
     Returns:
-        ``(F, 3)`` int64 indices into the row-major list of masked pixels.
+        ``(F, 3)`` int64 indices into the row-major list of masked pixels (over the
+        whole stack: mask 0's pixels first, then mask 1's, ...).
     """
-    h, w = mask.shape
-    index = torch.full((h + 1, w + 1), -1, dtype=torch.int64, device=mask.device)
-    index[:h, :w][mask] = torch.arange(int(mask.sum()), device=mask.device)
-    a = index[:h, :w]
-    down = index[1:h + 1, :w]
-    right = index[:h, 1:w + 1]
-    diag = index[1:h + 1, 1:w + 1]
+    m = mask if mask.dim() == 3 else mask.unsqueeze(0)
+    k, h, w = m.shape
+    index = torch.full((k, h + 1, w + 1), -1, dtype=torch.int64, device=mask.device)
+    index[:, :h, :w][m] = torch.arange(int(m.sum()), device=mask.device)
+    a = index[:, :h, :w]
+    down = index[:, 1:h + 1, :w]
+    right = index[:, :h, 1:w + 1]
+    diag = index[:, 1:h + 1, 1:w + 1]
     upper = (a >= 0) & (down >= 0) & (right >= 0)
     lower = upper & (diag >= 0)
     f1 = torch.stack([a[upper], down[upper], right[upper]], dim=1)
     f2 = torch.stack([down[lower], diag[lower], right[lower]], dim=1)
     return torch.cat([f1, f2])
 
-
-def vertex_normals(vertices: torch.Tensor, faces: torch.Tensor) -> torch.Tensor:
-    """Area-weighted vertex normals ``(V, 3)`` from ``(V, 3)`` vertices and ``(F, 3)`` faces
-    (zero for vertices in no face)."""
-    v = vertices
-    fn = torch.linalg.cross(v[faces[:, 1]] - v[faces[:, 0]], v[faces[:, 2]] - v[faces[:, 0]], dim=1)
-    acc = torch.zeros_like(v)
-    for k in range(3):
-        acc.index_add_(0, faces[:, k], fn)
-    return torch.nn.functional.normalize(acc, dim=1)

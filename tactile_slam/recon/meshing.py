@@ -33,7 +33,7 @@ def oriented_points(fused: Sequence[FusedKeyframe], min_weight: float) -> tuple[
     (positive dot product with its -z axis).
 
     Returns:
-        ``(N, 3)`` float64 points, ``(N, 3)`` float64 unit normals.
+        ``(N, 3)`` float32 points, ``(N, 3)`` float32 unit normals.
     """
     pts, nrm = [], []
     for fk in fused:
@@ -46,22 +46,39 @@ def oriented_points(fused: Sequence[FusedKeyframe], min_weight: float) -> tuple[
     return torch.cat(pts), torch.cat(nrm)
 
 
-def voxel_average(points: torch.Tensor, normals: torch.Tensor, voxel: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Average points and normals per cubic voxel of side ``voxel`` (same units).
-
-    ``(N, 3)``, ``(N, 3)`` -> ``(M, 3)``, ``(M, 3)`` with unit normals, ``M <= N``.
-    """
+def voxel_sums(points: torch.Tensor, values: torch.Tensor, voxel: float) -> torch.Tensor:
+    """Sum ``(N, C)`` values per cubic voxel (side ``voxel``, grid anchored at the
+    origin) of their ``(N, 3)`` points: ``(M, C)`` sums, ``M <= N``."""
     key = torch.floor(points / voxel).long()
     key = key - key.min(dim=0).values
     dims = key.max(dim=0).values + 1
     flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
     uniq, inv = torch.unique(flat, return_inverse=True)
-    count = torch.zeros(uniq.shape[0], dtype=points.dtype, device=points.device).index_add_(
-        0, inv, torch.ones_like(points[:, 0])
-    )
-    p = torch.zeros(uniq.shape[0], 3, dtype=points.dtype, device=points.device).index_add_(0, inv, points)
-    n = torch.zeros_like(p).index_add_(0, inv, normals)
-    return p / count.unsqueeze(1), torch.nn.functional.normalize(n, dim=1)
+    return torch.zeros(uniq.shape[0], values.shape[1], dtype=values.dtype, device=values.device).index_add_(
+        0, inv, values)
+
+
+def voxel_average(
+    points: torch.Tensor, normals: torch.Tensor, voxel: float, max_points: int | None = None
+) -> tuple[torch.Tensor, torch.Tensor, float]:
+    """Average points and normals per cubic voxel of side ``voxel`` (same units),
+    coarsened until at most ``max_points`` voxels remain.
+
+    A coarser voxel is an integer multiple of ``voxel`` (surface samples thin out as
+    ``1 / voxel^2``: each retry multiplies it by about ``1.05 sqrt(M / max_points)``),
+    so its voxels are unions of the finer ones and re-binning the finer voxels'
+    centroids with their sums gives exactly the average of the original points.
+
+    Returns:
+        ``(M, 3)`` points, ``(M, 3)`` unit normals, the voxel size used.
+    """
+    ones = torch.ones_like(points[:, :1])
+    sums = voxel_sums(points, torch.cat([points, normals, ones], dim=1), voxel)
+    factor = 1
+    while max_points is not None and sums.shape[0] > max_points:
+        factor = math.ceil(factor * 1.05 * math.sqrt(sums.shape[0] / max_points))
+        sums = voxel_sums(sums[:, :3] / sums[:, 6:], sums, voxel * factor)
+    return sums[:, :3] / sums[:, 6:], torch.nn.functional.normalize(sums[:, 3:6], dim=1), voxel * factor
 
 
 def poisson_depth(extent_mm: float, cell_mm: float, min_depth: int, max_depth: int) -> int:
@@ -79,7 +96,8 @@ def poisson_mesh(
     Args:
         points: ``(N, 3)`` metres (already voxel-averaged or not).
         normals: ``(N, 3)`` outward unit normals.
-        config: ``voxel_mm``, ``poisson_cell_mm``, depth bounds, trimming settings.
+        config: ``voxel_mm``, ``poisson_cell_mm``, ``poisson_max_points`` (beyond it
+            the voxel and the cell grow together), depth bounds, trimming settings.
         watertight: override ``config.watertight``.
 
     Returns:
@@ -89,12 +107,14 @@ def poisson_mesh(
     if points.shape[0] < 10:
         raise ReconError(f"Poisson meshing needs at least 10 oriented points, got {points.shape[0]}")
     watertight = config.watertight if watertight is None else watertight
-    p_mm, n = voxel_average(points.double() * 1000.0, normals.double(), config.voxel_mm)
+    p_mm, n, voxel = voxel_average(points * 1000.0, normals, config.voxel_mm,
+                                   config.poisson_max_points)
+    cell = config.poisson_cell_mm * voxel / config.voxel_mm  # the cell follows a coarsened voxel
     extent = float((p_mm.max(dim=0).values - p_mm.min(dim=0).values).max())
-    depth = poisson_depth(extent, config.poisson_cell_mm, config.poisson_min_depth, config.poisson_max_depth)
+    depth = poisson_depth(extent, cell, config.poisson_min_depth, config.poisson_max_depth)
     pcd = o3d.geometry.PointCloud()
-    pcd.points = o3d.utility.Vector3dVector(p_mm.cpu().numpy())
-    pcd.normals = o3d.utility.Vector3dVector(n.cpu().numpy())
+    pcd.points = o3d.utility.Vector3dVector(p_mm.cpu().double().numpy())
+    pcd.normals = o3d.utility.Vector3dVector(n.cpu().double().numpy())
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
             pcd, depth=depth, scale=1.1, linear_fit=False
@@ -116,6 +136,7 @@ def poisson_mesh(
     mesh.compute_vertex_normals()
     stats = {
         "poisson_depth": depth,
+        "voxel_mm": voxel,
         "poisson_points": int(p_mm.shape[0]),
         "vertices": len(mesh.vertices),
         "faces": len(mesh.triangles),

@@ -118,6 +118,7 @@ def reconstruct(
     mesh = None
     if config.recon.poisson:
         pts, nrm = oriented_points(fused, config.recon.min_weight)
+        del fused  # large scans: release the fused grids before Poisson
         mesh, mstats = poisson_mesh(pts, nrm, config.recon)
         stats.update({f"mesh_{k}": v for k, v in mstats.items()})
         stats["meshing_s"] = time.perf_counter() - t2

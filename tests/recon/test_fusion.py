@@ -6,13 +6,14 @@ import numpy as np
 import pytest
 import torch
 from scipy.ndimage import distance_transform_edt
+from scipy.spatial.transform import Rotation
 
 from tests.recon.recon_oracle import sphere_keyframes
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.recon import ReconError, fuse, merge_surfaces
-from tactile_slam.recon.fusion import grid_normals
-from tactile_slam.recon.mesh import grid_faces, vertex_normals
+from tactile_slam.recon.fusion import contact_box, grid_normals, project_into_box, sample_maps
+from tactile_slam.recon.mesh import grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
 
 CFG = Config()
@@ -50,9 +51,24 @@ def test_grid_faces_winding_and_count(device):
     # vertices of the masked pixels, row-major, flat
     rr, cc = torch.nonzero(mask, as_tuple=True)
     v = torch.stack([cc.double(), rr.double(), torch.zeros_like(rr, dtype=torch.float64)], 1)
-    n = vertex_normals(v, f)
+    n = torch.linalg.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]], dim=1)
     torch.testing.assert_close(n, torch.tensor([0.0, 0.0, -1.0], dtype=torch.float64, device=device).expand_as(n))
     assert grid_faces(torch.zeros(3, 3, dtype=torch.bool)).shape == (0, 3)
+
+
+def test_grid_faces_of_a_stack_match_each_mask_with_offsets():
+    """A stack of masks triangulates as each mask alone, indices shifted by the pixel
+    counts of the masks before it; no triangle joins two masks (full masks touch the
+    border rows and columns, where a flat index would wrap into the next mask)."""
+    gen = torch.Generator().manual_seed(0)
+    masks = torch.rand(3, 6, 7, generator=gen) > 0.3
+    masks[1] = True
+    stacked = grid_faces(masks)
+    offsets = [0, int(masks[0].sum()), int(masks[:2].sum())]
+    each = torch.cat([grid_faces(m) + o for m, o in zip(masks, offsets)])
+    assert sorted(map(tuple, stacked.tolist())) == sorted(map(tuple, each.tolist()))
+    owner = torch.repeat_interleave(torch.arange(3), masks.reshape(3, -1).sum(1))
+    assert (owner[stacked] == owner[stacked[:, :1]]).all()
 
 
 def test_grid_normals_face_outward(dtype):
@@ -126,3 +142,45 @@ def test_fused_sphere_points_lie_on_sphere():
     nrm = torch.cat([f.normals for f in fused]).numpy()
     inner = (nrm * pts / np.linalg.norm(pts, axis=1, keepdims=True)).sum(1)
     assert np.median(inner) > 0.99  # outward normals
+
+
+def test_sample_maps_match_scipy_interpolation():
+    """Bilinear reads with zeros outside the image (scipy's grid-constant mode) and the
+    nearest pixel's weight, at positions inside, on and beyond the border."""
+    from scipy.ndimage import map_coordinates
+
+    rng = np.random.default_rng(1)
+    height, weight = rng.normal(size=(2, 7, 9))
+    cr = np.concatenate([rng.uniform(-2, 10, size=(300, 2)), [[0, 0], [8, 6], [8.4, 6.4], [-0.6, 3.2]]])
+    h_bil, w_bil, w_near = sample_maps(torch.from_numpy(height), torch.from_numpy(weight), torch.from_numpy(cr))
+    coords = cr[:, ::-1].T  # (row, col)
+    np.testing.assert_allclose(h_bil, map_coordinates(height, coords, order=1, mode="grid-constant"), atol=1e-12)
+    np.testing.assert_allclose(w_bil, map_coordinates(weight, coords, order=1, mode="grid-constant"), atol=1e-12)
+    r, c = np.round(cr[:, 1]).astype(int), np.round(cr[:, 0]).astype(int)
+    inside = (r >= 0) & (r < 7) & (c >= 0) & (c < 9)
+    expected = np.where(inside, weight[r.clip(0, 6), c.clip(0, 8)], 0.0)
+    np.testing.assert_array_equal(w_near, expected)
+
+
+def test_box_projection_keeps_every_point_that_can_read_the_box():
+    """Points dropped by the box test read 0 from any map that is 0 outside the box."""
+    rng = np.random.default_rng(2)
+    mask = torch.zeros(H, W, dtype=torch.bool)
+    mask[50:90, 100:180] = True
+    box = contact_box(mask)
+    assert box.tolist() == [100, 179, 50, 89]
+    weight = torch.from_numpy(rng.uniform(0.1, 1.0, size=(H, W))) * mask
+    pts = torch.from_numpy(np.stack([rng.uniform(-12, 12, 5000) * 1e-3, rng.uniform(-9, 9, 5000) * 1e-3,
+                                     rng.uniform(-1, 0, 5000) * 1e-3], 1))
+    n_T_t = shifted(dx_px=13.3)
+    n_T_t[:3, :3] = torch.from_numpy(Rotation.from_rotvec([0.05, -0.1, 0.6]).as_matrix())
+    i, cr = project_into_box(n_T_t, pts, box, S, (H, W))
+    moved = pts @ n_T_t[:3, :3].T + n_T_t[:3, 3]
+    all_cr = torch.stack([moved[:, 0] / S + (W - 1) / 2, moved[:, 1] / S + (H - 1) / 2], 1)
+    torch.testing.assert_close(cr, all_cr[i])
+    _, w_bil, w_near = sample_maps(weight, weight, all_cr)
+    dropped = torch.ones(len(pts), dtype=torch.bool)
+    dropped[i] = False
+    assert 0 < len(i) < len(pts)
+    assert (w_bil[dropped] == 0).all() and (w_near[dropped] == 0).all()
+    assert (w_bil[i] > 0).float().mean() > 0.5

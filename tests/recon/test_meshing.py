@@ -23,12 +23,37 @@ def sphere_samples(n: int, radius_m: float, seed: int = 0, hemisphere: bool = Fa
 def test_voxel_average(dtype):
     p = torch.tensor([[0.01, 0.01, 0.01], [0.03, 0.02, 0.04], [1.01, 0.0, 0.0]], dtype=dtype)
     n = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]], dtype=dtype)
-    q, m = voxel_average(p, n, 0.05)
+    q, m, voxel = voxel_average(p, n, 0.05)
+    assert voxel == 0.05
     assert q.shape == (2, 3) and m.shape == (2, 3)
     order = torch.argsort(q[:, 0])
     torch.testing.assert_close(q[order[0]], torch.tensor([0.02, 0.015, 0.025], dtype=dtype))
     torch.testing.assert_close(m[order[0]], torch.tensor([0.0, 2**-0.5, 2**-0.5], dtype=dtype))
     torch.testing.assert_close(m.norm(dim=1), torch.ones(2, dtype=dtype))
+
+
+def test_voxel_budget_coarsens_exactly():
+    """Over the point budget the voxel grows to an integer multiple; the result is the
+    plain average of the original points at that voxel, computed here independently."""
+    rng = np.random.default_rng(0)
+    p = torch.from_numpy(rng.uniform(0, 2.0, size=(20_000, 3)))
+    p[:, 2] = 0.1 * torch.sin(3 * p[:, 0])  # a wavy sheet
+    n = torch.nn.functional.normalize(torch.from_numpy(rng.normal(size=(20_000, 3))), dim=1)
+    full, _, _ = voxel_average(p, n, 0.05)
+    q, m, voxel = voxel_average(p, n, 0.05, max_points=len(full) // 5)
+    assert len(q) <= len(full) // 5 < len(full)
+    factor = voxel / 0.05
+    assert factor > 2 and abs(factor - round(factor)) < 1e-9
+    keys = np.floor(p.numpy() / voxel).astype(np.int64)
+    _, inv = np.unique(keys, axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    expected = np.stack([np.bincount(inv, p.numpy()[:, k]) for k in range(3)], 1) / np.bincount(inv)[:, None]
+    normals = np.stack([np.bincount(inv, n.numpy()[:, k]) for k in range(3)], 1)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    order_q = np.lexsort(np.floor(q.numpy() / voxel).T)
+    order_e = np.lexsort(np.floor(expected / voxel).T)
+    np.testing.assert_allclose(q.numpy()[order_q], expected[order_e], atol=1e-12)
+    np.testing.assert_allclose(m.numpy()[order_q], normals[order_e], atol=1e-12)
 
 
 def test_poisson_depth_clamps():
@@ -49,6 +74,21 @@ def test_poisson_sphere_is_watertight_and_accurate():
     assert np.abs(r - 3.0).mean() < 0.02
     # outward normals
     assert float((mesh.normals * mesh.vertices).sum(1).min()) > 0
+
+
+def test_point_budget_coarsens_voxel_and_cell_together():
+    """Over the budget the voxel and the Poisson cell grow by the same factor (a lower
+    depth); the coarse surface still lies on the sphere to within a fraction of a cell."""
+    p, n = sphere_samples(40000, 3e-3)
+    fine, s_fine = poisson_mesh(p, n, ReconConfig())
+    coarse, s_coarse = poisson_mesh(p, n, ReconConfig(poisson_max_points=3000))
+    assert s_fine["voxel_mm"] == 0.05 and s_fine["poisson_points"] > 3000
+    assert s_coarse["poisson_points"] <= 3000 and s_coarse["voxel_mm"] > 0.1
+    factor = s_coarse["voxel_mm"] / 0.05
+    assert s_coarse["poisson_depth"] == poisson_depth(6.0, 0.1 * factor, 6, 11) < s_fine["poisson_depth"]
+    assert s_coarse["closed"] and coarse.n_faces < fine.n_faces / 2
+    r = coarse.vertices.norm(dim=1).numpy() * 1000
+    assert np.abs(r - 3.0).mean() < 0.1 * 0.1 * factor
 
 
 def test_trimmed_partial_scan_stays_near_data():
