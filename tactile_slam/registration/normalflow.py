@@ -22,6 +22,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.linalg.lapack import dposv
 
 from tactile_slam.config import NormalFlowConfig
 from tactile_slam.geometry.frame import Frame
@@ -228,24 +229,20 @@ def _inside(grid: torch.Tensor) -> torch.Tensor:
 
 
 def _solve(ata: np.ndarray, atb: np.ndarray, ridge: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
-    """Damped 5x5 normal equations ``(A + ridge + damping diag(A)) x = b`` (Marquardt
-    scaling; the tiny ``ridge`` keeps unobservable directions at 0 instead of NaN).
-    ``(b, 5, 5)``, ``(b, 5)`` -> ``(delta (b, 5), solved (b,) bool)``; an unsolvable
-    pair gets a zero step and ``solved = False``."""
+    """Damped 5x5 normal equations ``(A + ridge + damping diag(A)) x = b`` by Cholesky
+    (LAPACK ``dposv``; Marquardt scaling; the tiny ``ridge`` keeps unobservable
+    directions at 0 instead of NaN). ``(b, 5, 5)``, ``(b, 5)`` -> ``(delta (b, 5),
+    solved (b,) bool)``; an unsolvable pair gets a zero step and ``solved = False``."""
     damped = ata + ridge
     if damping > 0:
         damped = damped + damping * ata * np.eye(5)
-    try:
-        delta = np.linalg.solve(damped, atb[..., None])[..., 0]
-    except np.linalg.LinAlgError:  # a singular pair: solve one by one
-        delta = np.full_like(atb, np.nan)
-        for i in range(len(atb)):
-            try:
-                delta[i] = np.linalg.solve(damped[i], atb[i])
-            except np.linalg.LinAlgError:
-                pass
-    solved = np.isfinite(delta).all(1)
-    return np.where(solved[:, None], delta, 0.0), solved
+    delta = np.zeros_like(atb)
+    solved = np.zeros(len(atb), dtype=bool)
+    for i in range(len(atb)):
+        x, info = dposv(damped[i], atb[i])[1:]
+        if info == 0 and np.isfinite(x).all():
+            delta[i], solved[i] = x, True
+    return delta, solved
 
 
 @dataclass

@@ -4,7 +4,13 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
+from tactile_slam.registration.jacobian import (
+    euler_to_matrix,
+    jacobian_analytic,
+    jacobian_autograd,
+    sobel_at,
+    sobel_at_patches,
+)
 from tactile_slam.registration.normalflow import prepare_reference
 
 from .surfaces import as_dtype, bumpy, frames
@@ -22,18 +28,21 @@ def test_euler_gradcheck():
     assert torch.autograd.gradcheck(euler_to_matrix, (angles,))
 
 
-def test_sobel_at_matches_opencv_including_borders(device, dtype):
+@pytest.mark.parametrize("fn", [sobel_at, sobel_at_patches])
+def test_sobel_at_matches_opencv_including_borders(device, dtype, fn):
     g = torch.Generator().manual_seed(0)
-    maps = torch.rand((1, 12, 15, 3), generator=g, dtype=torch.float64)
-    idx = torch.tensor([[0, 1, 14, 16, 50, 95, 179]])  # corners, edges, interior
-    got = sobel_at(maps.to(device, dtype), idx.to(device)).cpu().double()
-    for ch in range(3):
-        img = maps[0, :, :, ch].numpy()
-        dx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=5, scale=2**-7).ravel()[idx[0].numpy()]
-        dy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=5, scale=2**-7).ravel()[idx[0].numpy()]
+    maps = torch.rand((2, 12, 15, 3), generator=g, dtype=torch.float64)
+    maps[1] = maps[1].flip(0)  # a different second map: each batch element is filtered on its own
+    idx = torch.tensor([[0, 1, 14, 16, 50, 95, 179], [179, 3, 0, 44, 60, 61, 178]])  # corners, edges, interior
+    got = fn(maps.to(device, dtype), idx.to(device)).cpu().double()
+    assert got.shape == (2, 7, 3, 2) and got.dtype == torch.float64
+    for b, ch in ((0, 0), (0, 1), (0, 2), (1, 0), (1, 2)):
+        img = maps[b, :, :, ch].numpy()
+        dx = cv2.Sobel(img, cv2.CV_64F, 1, 0, ksize=5, scale=2**-7).ravel()[idx[b].numpy()]
+        dy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=5, scale=2**-7).ravel()[idx[b].numpy()]
         tol = 1e-5 if dtype == torch.float32 else 1e-12
-        assert np.allclose(got[0, :, ch, 0].numpy(), dx, atol=tol)
-        assert np.allclose(got[0, :, ch, 1].numpy(), dy, atol=tol)
+        assert np.allclose(got[b, :, ch, 0].numpy(), dx, atol=tol)
+        assert np.allclose(got[b, :, ch, 1].numpy(), dy, atol=tol)
 
 
 def _random_inputs(n=64, seed=0, device="cpu"):
