@@ -23,7 +23,7 @@ from tactile_slam.bench.common import time_fn, timing_stats, write_json
 from tactile_slam.config import Config, NormalFlowConfig
 from tactile_slam.geometry.frame import Frame, FrameBuilder
 from tactile_slam.registration.baselines import register_fpfh, register_icp
-from tactile_slam.registration.normalflow import register
+from tactile_slam.registration.normalflow import prepare_reference, register, register_prepared
 from tactile_slam.registration.result import RegistrationResult, pose_error
 
 OBJECTS = ("seed", "shell", "dice", "lime", "handle")  # handle: low texture
@@ -103,12 +103,18 @@ def summarise(res: RegistrationResult, truth: torch.Tensor, args) -> dict:
     }
 
 
-def _timed_nf(refs: list[Frame], tars: list[Frame], cfg: NormalFlowConfig, repeats: int, sync: bool):
-    """Per-pair results and per-call time samples of single-pair NormalFlow."""
+def _timed_nf(refs: list[Frame], tars: list[Frame], cfg: NormalFlowConfig, repeats: int, sync: bool,
+              prepared: list[float] | None = None):
+    """Per-pair results and per-call time samples of single-pair NormalFlow (reference
+    preparation included). ``prepared``, if given, receives the times of the same calls
+    against an already prepared reference (the tracking case: one keyframe, many frames)."""
     results, samples = [], []
     for ref, tar in zip(refs, tars):
         results.append(register(ref, tar, None, cfg))
         samples += time_fn(lambda: register(ref, tar, None, cfg), repeats, warmup=1, sync_cuda=sync)
+        if prepared is not None:
+            prep = prepare_reference(ref, cfg)
+            prepared += time_fn(lambda: register_prepared(prep, tar, None, cfg), repeats, warmup=1, sync_cuda=sync)
     return RegistrationResult.cat(results), samples
 
 
@@ -137,8 +143,10 @@ def run(args) -> Path:
     }
     methods: dict = {}
     for name, nf_cfg in variants.items():
-        res, samples = _timed_nf(refs, tars, nf_cfg, args.repeats, sync)
-        methods[name] = {"time_per_pair": timing_stats(samples), "all": summarise(res, truth, args),
+        prepared: list[float] = []
+        res, samples = _timed_nf(refs, tars, nf_cfg, args.repeats, sync, prepared)
+        methods[name] = {"time_per_pair": timing_stats(samples), "time_per_pair_prepared": timing_stats(prepared),
+                         "all": summarise(res, truth, args),
                          "per_object": {o: summarise(res[torch.tensor([x == o for x in obj_of])],
                                                      truth[torch.tensor([x == o for x in obj_of])], args)
                                         for o in args.objects}}
@@ -156,6 +164,11 @@ def run(args) -> Path:
         batched[f"B={b}"] = st | {"median_ms_per_pair": st["median_ms"] / b,
                                   "max_rot_diff_vs_single_deg": float(rot_diff.max()),
                                   "max_trans_diff_vs_single_mm": float(trans_diff.max())}
+    # one reference, 64 targets (a keyframe against many frames): the object's own pairs
+    own = [i for i in range(n) if obj_of[i] == args.objects[0]]
+    tar_1 = Frame.cat([tars[own[i % len(own)]] for i in range(64)])
+    st = timing_stats(time_fn(lambda: register(refs[own[0]], tar_1), args.repeats * 2, warmup=1, sync_cuda=sync))
+    batched["B=64, one reference"] = st | {"median_ms_per_pair": st["median_ms"] / 64}
 
     # Open3D baselines (CPU)
     cpu_refs, cpu_tars = [r.to("cpu") for r in refs], [t.to("cpu") for t in tars]
