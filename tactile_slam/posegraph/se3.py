@@ -116,20 +116,30 @@ def log(T: torch.Tensor) -> torch.Tensor:
     return torch.cat([rho, phi], dim=-1)
 
 
+# Shepperd's four candidate quaternions (rows: x-, y-, z-, w-pivot; columns x, y, z, w) as
+# a linear map of [1, m00, m01, m02, m10, m11, m12, m20, m21, m22].
+_SHEPPERD = (
+    (1, 1, 0, 0, 0, -1, 0, 0, 0, -1), (0, 0, 1, 0, 1, 0, 0, 0, 0, 0),
+    (0, 0, 0, 1, 0, 0, 0, 1, 0, 0), (0, 0, 0, 0, 0, 0, -1, 0, 1, 0),
+    (0, 0, 1, 0, 1, 0, 0, 0, 0, 0), (1, -1, 0, 0, 0, 1, 0, 0, 0, -1),
+    (0, 0, 0, 0, 0, 0, 1, 0, 1, 0), (0, 0, 0, 1, 0, 0, 0, -1, 0, 0),
+    (0, 0, 0, 1, 0, 0, 0, 1, 0, 0), (0, 0, 0, 0, 0, 0, 1, 0, 1, 0),
+    (1, -1, 0, 0, 0, -1, 0, 0, 0, 1), (0, 0, -1, 0, 1, 0, 0, 0, 0, 0),
+    (0, 0, 0, 0, 0, 0, -1, 0, 1, 0), (0, 0, 0, 1, 0, 0, 0, -1, 0, 0),
+    (0, 0, -1, 0, 1, 0, 0, 0, 0, 0), (1, 1, 0, 0, 0, 1, 0, 0, 0, 1),
+)
+
+
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """Unit quaternions ``(..., 4)`` = ``[x, y, z, w]`` with ``w >= 0`` of rotations ``(..., 3, 3)``.
 
     Shepperd's method: of the four algebraically equivalent formulas, each element uses the
-    one with the largest pivot, so the result is accurate for every rotation angle.
+    one with the largest pivot, so the result is accurate for every rotation angle. The four
+    candidates come from one product with a constant matrix (few ops on small batches).
     """
-    m = R.reshape(R.shape[:-2] + (9,)).unbind(-1)
-    m00, m01, m02, m10, m11, m12, m20, m21, m22 = m
-    cand = torch.stack([
-        torch.stack([1 + m00 - m11 - m22, m01 + m10, m02 + m20, m21 - m12], -1),
-        torch.stack([m01 + m10, 1 - m00 + m11 - m22, m12 + m21, m02 - m20], -1),
-        torch.stack([m02 + m20, m12 + m21, 1 - m00 - m11 + m22, m10 - m01], -1),
-        torch.stack([m21 - m12, m02 - m20, m10 - m01, 1 + m00 + m11 + m22], -1),
-    ], -2)
+    lead = R.shape[:-2]
+    v = torch.cat([torch.ones(lead + (1,), dtype=R.dtype, device=R.device), R.reshape(lead + (9,))], -1)
+    cand = (v @ torch.tensor(_SHEPPERD, dtype=R.dtype, device=R.device).T).reshape(lead + (4, 4))
     pivot = torch.diagonal(cand, dim1=-2, dim2=-1).argmax(-1)
     q = torch.gather(cand, -2, pivot[..., None, None].expand(pivot.shape + (1, 4))).squeeze(-2)
     q = q / q.norm(dim=-1, keepdim=True)
