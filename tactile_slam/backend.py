@@ -10,12 +10,18 @@ the group's root session) up to date. Per keyframe (offline step order of method
    odometry factor;
 2. detect loops against the *active coverage* keyframes, as the coverage set was before
    this keyframe;
-3. add every accepted loop as a between factor; merge the groups it connects (the root
+3. decide which verified loops enter the graph (:class:`~tactile_slam.loop.consistency.LoopGate`,
+   ``loop.consistency``): a loop within the keyframe's group that agrees with the current
+   estimate within the drift tolerance is accepted, one far beyond it rejected; the others,
+   and loops into another group, wait until enough of them agree with each other (a
+   symmetric or periodic object verifies false loops that no two-keyframe test can reject;
+   docs/loops.md);
+4. add every accepted loop as a between factor; merge the groups they connect (the root
    is the group with most keyframes, ties to the new keyframe's group), moving each
-   absorbed group rigidly through the loop measurement before solving (the public code
+   absorbed group rigidly through a loop measurement before solving (the public code
    leaves absorbed poses at their identity-anchored values) and removing its prior;
-4. solve incrementally (only what the new factors disturb);
-5. insert the keyframe into the coverage set with its solved pose, refresh the poses of
+5. solve incrementally (only what the new factors disturb);
+6. insert the keyframe into the coverage set with its solved pose, refresh the poses of
    the keyframes the solve moved, and merge the coverage graphs of merged groups;
    keyframes the coverage set deactivates leave the loop detector.
 """
@@ -23,14 +29,17 @@ the group's root session) up to date. Per keyframe (offline step order of method
 from __future__ import annotations
 
 import json
+import math
 import time
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Mapping
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from tactile_slam.config import Config
+from tactile_slam.loop.consistency import DriftModel, LoopGate
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import Loop, LoopDetector
 from tactile_slam.posegraph.graph import PoseGraph
@@ -49,6 +58,50 @@ class BackEndStats:
     time_loop_detection: list[float] = field(default_factory=list)
     time_pose_graph: list[float] = field(default_factory=list)
     time_coverage: list[float] = field(default_factory=list)
+
+
+class _GroupView(Mapping):
+    """Keyframe id -> group id, read from the union-find on access (no copy)."""
+
+    def __init__(self, backend: BackEnd) -> None:
+        self._b = backend
+
+    def __getitem__(self, kf_id: int) -> int:
+        if kf_id not in self._b.keyframes:
+            raise KeyError(kf_id)
+        return self._b.sessions.group_of(kf_id)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._b.keyframes)
+
+    def __len__(self) -> int:
+        return len(self._b.keyframes)
+
+
+class _PoseView(Mapping):
+    """Keyframe id -> ``(4, 4)`` float64 ``start_T_kf``, read from the graph on access."""
+
+    def __init__(self, backend: BackEnd) -> None:
+        self._b = backend
+
+    def __getitem__(self, kf_id: int) -> torch.Tensor:
+        if kf_id not in self._b.keyframes:
+            raise KeyError(kf_id)
+        return self._b.graph.pose(kf_id)
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._b.keyframes)
+
+    def __len__(self) -> int:
+        return len(self._b.keyframes)
+
+
+def drift_model(config: Config) -> DriftModel:
+    """The loop tolerance of ``config.loop``; rotations count as motion of the gel's corner
+    (half the sensor diagonal)."""
+    lc, sc = config.loop, config.sensor
+    return DriftModel(lc.drift_base_rot_deg, lc.drift_base_trans_mm, lc.drift_rot_deg_per_mm,
+                      lc.drift_trans_mm_per_mm, 0.5 * math.hypot(sc.width, sc.height) * sc.mm_per_px)
 
 
 class BackEnd:
@@ -71,25 +124,28 @@ class BackEnd:
         self.loops: list[Loop] = []
         self.stats = BackEndStats()
         self.sessions = SessionGroups()
+        self.gate = (LoopGate(drift_model(config), config.loop.merge_min_pairs, config.loop.doubt_factor)
+                     if config.loop.consistency else None)
         self._last_in_session: dict[int, int] = {}
+        self._group_view = _GroupView(self)
+        self._pose_view = _PoseView(self)
 
     @property
-    def group(self) -> dict[int, int]:
-        """Keyframe id -> group id (its root session), for every keyframe."""
-        return {k: self.sessions.group_of(k) for k in self.keyframes}
+    def group(self) -> Mapping[int, int]:
+        """Keyframe id -> group id (its root session), for every keyframe; a live view
+        (``dict(backend.group)`` for a snapshot)."""
+        return self._group_view
 
     @property
-    def start_T_kf(self) -> dict[int, torch.Tensor]:
-        """Keyframe id -> ``(4, 4)`` float64 pose in its group's start frame, metres."""
-        ids = list(self.keyframes)
-        if not ids:
-            return {}
-        poses = self.graph.poses(ids)
-        return dict(zip(ids, poses))
+    def start_T_kf(self) -> Mapping[int, torch.Tensor]:
+        """Keyframe id -> ``(4, 4)`` float64 pose in its group's start frame, metres; a live
+        view (``dict(backend.start_T_kf)`` for a snapshot)."""
+        return self._pose_view
 
     # ------------------------------------------------------------------ step
     def add(self, kf: Keyframe, detect: bool = True) -> list[Loop]:
-        """Process one keyframe; returns the loops accepted for it.
+        """Process one keyframe; returns the loops that entered the graph with it (its own,
+        and earlier pending loops accepted now).
 
         ``detect=False`` skips loop detection *for* this keyframe (online skipping,
         method.md 6.4): it still gets its odometry factor, joins the coverage set and
@@ -100,9 +156,13 @@ class BackEnd:
         if self.sessions.add_keyframe(kf.id, kf.session):
             self.graph.add_node(kf.id)
             self.graph.add_prior(kf.id)
+            if self.gate is not None:
+                self.gate.add_node(kf.id)
         else:
             self.graph.add_node(kf.id, self.graph.pose(prev) @ kf.prev_T_kf)
             self.graph.add_between(prev, kf.id, kf.prev_T_kf, kind="odometry")
+            if self.gate is not None:
+                self.gate.add_factor(prev, kf.id, kf.prev_T_kf)
         self._last_in_session[kf.session] = kf.id
 
         t0 = time.perf_counter()
@@ -110,30 +170,39 @@ class BackEnd:
         if self.detector is not None:
             if detect:
                 eligible = [k for k in self.coverage.active if k in self.detector]
-                loops = self.detector.detect(kf, eligible, self.group, self.start_T_kf, self.keyframes)
+                loops = self.detector.detect(kf, eligible, self._group_view, self._pose_view, self.keyframes)
             self.detector.add(kf)
         t1 = time.perf_counter()
         self.stats.time_loop_detection.append(t1 - t0)
 
+        if self.gate is not None:
+            sel = self.gate.select(kf.id, loops, self.sessions.group_of, self.graph.pose)
+            loops, joins = sel.accepted, sel.merges
+        else:
+            joins = [(kf.id, lp.ref_id, lp.ref_T_tar) for lp in loops]
         for loop in loops:
             self.graph.add_between(loop.ref_id, loop.tar_id, loop.ref_T_tar, kind="loop")
-        merge = self.sessions.merge(self.graph, kf.id, [(lp.ref_id, lp.ref_T_tar) for lp in loops],
-                                    self.config.posegraph.reinit_merged)
-        self.stats.merges += len(merge.absorbed)
+            if self.gate is not None:
+                self.gate.add_factor(loop.ref_id, loop.tar_id, loop.ref_T_tar)
+        merges = [self.sessions.merge(self.graph, t, [(r, Z)], self.config.posegraph.reinit_merged)
+                  for t, r, Z in joins]
+        self.stats.merges += sum(len(m.absorbed) for m in merges)
         self.loops += loops
         self.stats.loops += len(loops)
         self.solver.update()
         t2 = time.perf_counter()
         self.stats.time_pose_graph.append(t2 - t1)
 
-        root = merge.root
-        members = self.sessions.members(root)
-        poses = dict(zip(members, self.graph.poses(members)))
-        self.coverage.update_poses({k: p for k, p in poses.items() if k in self.coverage})
-        if merge.absorbed:
-            self.coverage.merge(root, merge.absorbed)
+        root = self.sessions.group_of(kf.id)
+        changed = {root} | {self.sessions.find(m.root) for m in merges}
+        active = [k for k in self.coverage.active if self.sessions.group_of(k) in changed]
+        if active:  # only active coverage keyframes take part in overlap tests
+            self.coverage.update_poses(dict(zip(active, self.graph.poses(active))))
+        for m in merges:
+            if m.absorbed:
+                self.coverage.merge(self.sessions.find(m.root), m.absorbed)
         before = set(self.coverage.active)
-        self.coverage.add(kf, poses[kf.id], root)
+        self.coverage.add(kf, self.graph.pose(kf.id), root)
         if self.detector is not None:
             for gone in before - set(self.coverage.active):
                 if gone in self.detector:
@@ -152,6 +221,7 @@ class BackEnd:
             "loop_candidates": self.detector.stats.candidates if self.detector is not None else 0,
             "loops": st.loops,
             "group_merges": st.merges,
+            "loop_gate": asdict(self.gate.stats) if self.gate is not None else None,
             "timing_ms_per_keyframe": {"loop_detection": med(st.time_loop_detection),
                                        "pose_graph": med(st.time_pose_graph),
                                        "coverage": med(st.time_coverage)},

@@ -174,6 +174,18 @@ class LoopConfig:
     max_init_rot_deg: float | None = None  # reject loops whose NF pose leaves the 2-D guess by more
     max_init_trans_mm: float | None = None
     verify_batch: int = 16  # NormalFlow pairs per batch
+    # back-end acceptance (tactile_slam/loop/consistency.py; docs/loops.md): a loop within a
+    # group that matches the estimate within base + rate * drift path (mm of motion measured
+    # by the factors between its ends) is accepted; beyond doubt_factor x that it is rejected;
+    # in between, and across groups, it waits until merge_min_pairs loops from distinct
+    # keyframes on both sides agree
+    consistency: bool = True
+    drift_base_rot_deg: float = 3.0
+    drift_base_trans_mm: float = 0.5
+    drift_rot_deg_per_mm: float = 0.1
+    drift_trans_mm_per_mm: float = 0.02
+    doubt_factor: float = 5.0
+    merge_min_pairs: int = 2
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
     coverage_depth_gate_mm: float | None = None  # count overlap only within this depth

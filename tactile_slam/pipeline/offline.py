@@ -224,7 +224,7 @@ class OfflinePipeline:
             idx = np.asarray(indices)
             kf_of_full[idx] = kf_of
             kf_T_full[idx] = np.stack(kf_T)
-        start_T_kf, group_of_kf = backend.start_T_kf, backend.group
+        start_T_kf, group_of_kf = dict(backend.start_T_kf), dict(backend.group)  # snapshots of live views
         by_group, groups = frame_poses(kf_of_full, kf_T_full, start_T_kf, group_of_kf)
         poses = main_group_poses(by_group, groups)
         fps = float(getattr(self.source, "fps", self.config.sensor.fps) or self.config.sensor.fps)
@@ -285,7 +285,7 @@ class OfflinePipeline:
 
     def _plot_graph(self, backend: BackEnd) -> None:
         """``pose_graph.png``: the largest group's keyframes, coverage keyframes and edges."""
-        group = backend.group
+        group = dict(backend.group)
         root = max(set(group.values()), key=lambda g: sum(1 for v in group.values() if v == g))
         ids = [k for k in backend.keyframes if group[k] == root]
         row = {k: i for i, k in enumerate(ids)}

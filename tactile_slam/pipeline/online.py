@@ -217,9 +217,8 @@ class KeyframeMap:
 
 
 def _update(backend: BackEnd, skipped: int, step_s: list[float]) -> PoseUpdate:
-    poses = backend.start_T_kf
-    ids = np.array(list(poses), dtype=np.int64)
-    stack = torch.stack([poses[i] for i in ids.tolist()]).numpy() if len(ids) else np.zeros((0, 4, 4))
+    ids = np.array(list(backend.keyframes), dtype=np.int64)
+    stack = backend.graph.poses(ids.tolist()).numpy() if len(ids) else np.zeros((0, 4, 4))
     group = backend.group
     return PoseUpdate(ids, stack, np.array([group[i] for i in ids.tolist()], dtype=np.int64),
                       backend.stats.loops, backend.stats.merges, skipped, step_s)
@@ -228,8 +227,7 @@ def _update(backend: BackEnd, skipped: int, step_s: list[float]) -> PoseUpdate:
 def _write_preview(preview, backend: BackEnd, out: Path) -> None:
     from tactile_slam.recon import ReconError
 
-    poses = backend.start_T_kf
-    preview.update_poses(poses)
+    preview.update_poses(dict(backend.start_T_kf))
     try:
         folder = out / "preview"
         folder.mkdir(parents=True, exist_ok=True)

@@ -28,8 +28,10 @@ def tracking_episode(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def contact_loss_episode(tmp_path_factory):
+    # long enough for two sessions to meet twice: groups merge only on two agreeing loops
+    # from distinct keyframes on both sides (docs/loops.md)
     out = tmp_path_factory.mktemp("ep_loss")
-    return simulate_episode(out, SimulationSettings(object="seed", kind="contact_loss", frames=140, seed=4))
+    return simulate_episode(out, SimulationSettings(object="seed", kind="contact_loss", frames=400, seed=4))
 
 
 def gt_relative(episode_dir, first):

@@ -38,8 +38,10 @@ ONLINE_KEYS = {"frames_dropped", "latency_ms", "keyframes_skipped_for_loops", "b
 
 @pytest.fixture(scope="module")
 def episode(tmp_path_factory):
+    # long enough for sessions to meet twice (groups merge on two agreeing loops) before
+    # the last keyframes, so that the stream reports a loop correction
     out = tmp_path_factory.mktemp("ep_online")
-    return simulate_episode(out, SimulationSettings(object="seed", kind="contact_loss", frames=140, seed=4))
+    return simulate_episode(out, SimulationSettings(object="seed", kind="contact_loss", frames=520, seed=4))
 
 
 def source(ep):

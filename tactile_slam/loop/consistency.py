@@ -1,0 +1,327 @@
+"""Back-end loop acceptance: a verified loop must agree with the map (docs/loops.md).
+
+A loop that NormalFlow verifies is a true match of the *surface*; on a symmetric or
+periodic object it can still be a false loop of the *object* (the two touches are a half
+turn or a whole period apart on identical texture). No test on the two keyframes alone can
+tell; the map can:
+
+* **within a connected group** the current pose estimates predict the loop's relative pose.
+  :func:`consistent` compares the measurement with that prediction under a tolerance that
+  grows with the *drift path* between the two keyframes: the shortest path between them in
+  the graph of accepted factors, each factor weighted by the motion it measures
+  (:func:`motion_mm`). Chains of relative measurements drift in proportion to the motion they
+  chain; a recent loop near both keyframes makes the path (and the tolerance) short again.
+* **across groups** no prediction exists; :class:`PendingLoops` holds such loops until
+  loops from enough distinct query keyframes agree on the transform between the two groups
+  (:func:`implied_transform`, checked like a loop within one group through one of them).
+
+:class:`MotionGraph` keeps the weighted adjacency incrementally (one entry per factor) and
+answers bounded shortest-path queries, so a check costs the size of the neighbourhood it
+explores, not of the map.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import torch
+
+from tactile_slam.posegraph import se3
+
+
+@dataclass(frozen=True)
+class DriftModel:
+    """Tolerance of a loop against the pose estimate: ``base + rate * path``.
+
+    Attributes:
+        base_rot_deg, base_trans_mm: tolerance at zero path (loop measurement error).
+        rot_deg_per_mm, trans_mm_per_mm: growth per mm of drift path (odometry drift).
+        lever_mm: a rotation of ``a`` rad counts as ``a * lever_mm`` mm of motion.
+    """
+
+    base_rot_deg: float
+    base_trans_mm: float
+    rot_deg_per_mm: float
+    trans_mm_per_mm: float
+    lever_mm: float
+
+    def tolerance(self, path_mm: float) -> tuple[float, float]:
+        """``(rotation deg, translation mm)`` tolerance after ``path_mm`` of drift path."""
+        return self.base_rot_deg + self.rot_deg_per_mm * path_mm, self.base_trans_mm + self.trans_mm_per_mm * path_mm
+
+    def scaled(self, factor: float) -> DriftModel:
+        """The same model with every tolerance ``factor`` times larger."""
+        return DriftModel(self.base_rot_deg * factor, self.base_trans_mm * factor, self.rot_deg_per_mm * factor,
+                          self.trans_mm_per_mm * factor, self.lever_mm)
+
+
+def motion_mm(a_T_b: torch.Tensor, lever_mm: float) -> torch.Tensor:
+    """Motion measured by relative poses ``(..., 4, 4)`` (metres): translation in mm plus
+    rotation angle (rad) times ``lever_mm``. Returns ``(...)`` float64."""
+    xi = se3.log(a_T_b.double())
+    return torch.linalg.vector_norm(a_T_b[..., :3, 3].double(), dim=-1) * 1e3 + \
+        torch.linalg.vector_norm(xi[..., 3:], dim=-1) * lever_mm
+
+
+def discrepancy(predicted: torch.Tensor, measured: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rotation angle (deg) and translation distance (mm) between ``(B, 4, 4)`` relative
+    poses (metres): the error of ``predicted^-1 . measured``. Returns two ``(B,)`` float64."""
+    d = se3.inverse(predicted.double()) @ measured.double()
+    cos = ((d[:, 0, 0] + d[:, 1, 1] + d[:, 2, 2] - 1.0) / 2.0).clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.arccos(cos)), torch.linalg.vector_norm(predicted[:, :3, 3] - measured[:, :3, 3],
+                                                                      dim=-1).double() * 1e3
+
+
+def consistent(predicted: torch.Tensor, measured: torch.Tensor, path_mm: torch.Tensor,
+               model: DriftModel) -> torch.Tensor:
+    """Whether measured relative poses agree with predicted ones within the drift tolerance.
+
+    Args:
+        predicted, measured: ``(B, 4, 4)`` float64 ``r_T_t`` (metres).
+        path_mm: ``(B,)`` drift path between the two keyframes (``inf``: unknown, fails).
+        model: the tolerance.
+
+    Returns:
+        ``(B,)`` bool.
+    """
+    rot, trans = discrepancy(predicted, measured)
+    path = path_mm.double()
+    return torch.isfinite(path) & (rot <= model.base_rot_deg + model.rot_deg_per_mm * path) & \
+        (trans <= model.base_trans_mm + model.trans_mm_per_mm * path)
+
+
+def implied_transform(start_T_a: torch.Tensor, a_T_b: torch.Tensor, start_T_b: torch.Tensor) -> torch.Tensor:
+    """``A_T_B`` ``(4, 4)``: the map from group B's start frame into group A's implied by a
+    loop ``a_T_b`` between keyframe ``a`` of A and ``b`` of B at poses ``start_T_a``,
+    ``start_T_b`` in their own groups."""
+    return start_T_a @ a_T_b @ se3.inverse(start_T_b)
+
+
+class MotionGraph:
+    """Undirected keyframe graph, each edge weighted by the motion it measures (mm)."""
+
+    def __init__(self, lever_mm: float) -> None:
+        self.lever_mm = lever_mm
+        self._adj: dict[int, list[tuple[int, float]]] = {}
+
+    def __contains__(self, node: int) -> bool:
+        return node in self._adj
+
+    def add_node(self, node: int) -> None:
+        self._adj.setdefault(node, [])
+
+    def add_edge(self, i: int, j: int, i_T_j: torch.Tensor) -> None:
+        """An edge for the factor ``(i, j, i_T_j)`` (metres); adds unknown nodes."""
+        w = float(motion_mm(i_T_j, self.lever_mm))
+        self._adj.setdefault(i, []).append((j, w))
+        self._adj.setdefault(j, []).append((i, w))
+
+    def paths(self, source: int, targets: Iterable[int], limit: float = math.inf) -> dict[int, float]:
+        """Shortest weighted path (mm) from ``source`` to each of ``targets``; ``inf`` for
+        targets farther than ``limit`` or unreachable. Stops once every target is settled."""
+        left = set(targets)
+        out = {t: math.inf for t in left}
+        if source not in self._adj:
+            return out
+        dist = {source: 0.0}
+        heap = [(0.0, source)]
+        done: set[int] = set()
+        while heap and left:
+            d, u = heapq.heappop(heap)
+            if u in done:
+                continue
+            done.add(u)
+            if u in left:
+                out[u] = d
+                left.discard(u)
+            for v, w in self._adj[u]:
+                nd = d + w
+                if nd <= limit and nd < dist.get(v, math.inf):
+                    dist[v] = nd
+                    heapq.heappush(heap, (nd, v))
+        return out
+
+
+@dataclass
+class PendingLoop:
+    """A verified loop between two groups, waiting for agreement.
+
+    ``a_id`` / ``b_id`` are its ends (``a`` = reference, ``b`` = query keyframe);
+    ``a_T_b`` the measurement; ``loop`` the caller's object (added once accepted);
+    ``groups`` the group(s) of its ends when last evaluated; ``recheck``: other loops were
+    accepted for the same groups, so it is checked against the estimate at the next step."""
+
+    a_id: int
+    b_id: int
+    a_T_b: torch.Tensor
+    loop: object
+    groups: frozenset = frozenset()
+    recheck: bool = False
+
+
+@dataclass
+class GateStats:
+    """Counters of :class:`LoopGate`.
+
+    ``rejected_consistency``: loops within a group beyond ``doubt_factor`` times the drift
+    tolerance (the others left out of an accepted set meet the corrected estimate the same
+    way); ``doubtful``: loops within a group beyond the tolerance but within that, held
+    pending (cumulative); ``deferred``: loops between groups held pending (cumulative);
+    ``ambiguous``: evaluations where two disagreeing sets of loops both had enough support
+    (no merge); ``pending``: loops waiting now.
+    """
+
+    rejected_consistency: int = 0
+    doubtful: int = 0
+    deferred: int = 0
+    ambiguous: int = 0
+    pending: int = 0
+
+
+@dataclass
+class Selection:
+    """What :meth:`LoopGate.select` decided for one keyframe.
+
+    ``accepted``: loops to add as factors (the query's loops within its group, the loops of
+    each merge, and pending loops whose groups were joined meanwhile that pass the check);
+    ``merges``: ``(t, r, r_T_t)``, one accepted loop per pair of groups to join, for
+    :meth:`tactile_slam.posegraph.sessions.SessionGroups.merge` (in order).
+    """
+
+    accepted: list
+    merges: list[tuple[int, int, torch.Tensor]]
+
+
+class LoopGate:
+    """Decides which verified loops enter the pose graph (see the module docstring).
+
+    Args:
+        model: drift tolerance: a loop within a group that agrees with the estimate within it
+            is accepted at once.
+        min_pairs: loops that need corroboration (between two groups; within a group, beyond
+            the tolerance) are accepted only when at least this many of them, from distinct
+            keyframes on both sides, agree on the same transform and no disagreeing set of
+            loops has that support too; two groups then merge.
+        doubt_factor: a loop within a group farther from the estimate than this many times
+            the tolerance is rejected outright (a half turn of a symmetric object, a teleport).
+
+    The caller reports every factor it adds (:meth:`add_factor`) and calls :meth:`select`
+    once per keyframe with its verified loops, after the keyframe's node and odometry are in.
+    """
+
+    def __init__(self, model: DriftModel, min_pairs: int = 2, doubt_factor: float = 5.0) -> None:
+        if min_pairs < 1 or doubt_factor < 1.0:
+            raise ValueError(f"need min_pairs >= 1 and doubt_factor >= 1, got {min_pairs}, {doubt_factor}")
+        self.model = model
+        self.min_pairs = min_pairs
+        self.doubt_factor = doubt_factor
+        self.motion = MotionGraph(model.lever_mm)
+        self.pending: list[PendingLoop] = []
+        self.stats = GateStats()
+
+    def add_node(self, node: int) -> None:
+        self.motion.add_node(node)
+
+    def add_factor(self, i: int, j: int, i_T_j: torch.Tensor) -> None:
+        """A between factor the caller added to the pose graph (odometry or loop)."""
+        self.motion.add_edge(i, j, i_T_j)
+
+    def select(self, t: int, loops: list, group_of, pose) -> Selection:
+        """Accept, defer or reject the verified loops of keyframe ``t``.
+
+        Args:
+            t: the query keyframe.
+            loops: its verified loops (objects with ``ref_id``, ``tar_id`` = ``t`` and
+                ``ref_T_tar`` ``(4, 4)`` metres).
+            group_of: keyframe id -> group id (current).
+            pose: keyframe id -> ``(4, 4)`` float64 ``start_T_kf`` (current estimate).
+        """
+        g_t = group_of(t)
+        # loops within one group now: the query's own, and pending ones whose groups were joined
+        joined = [p for p in self.pending
+                  if p.recheck or (len(p.groups) == 2 and group_of(p.a_id) == group_of(p.b_id))]
+        self.pending = [p for p in self.pending if not any(p is q for q in joined)]
+        within = joined + [PendingLoop(lp.ref_id, t, lp.ref_T_tar, lp) for lp in loops if group_of(lp.ref_id) == g_t]
+        accepted = self._check_within(within, pose)
+        new = [PendingLoop(lp.ref_id, t, lp.ref_T_tar, lp) for lp in loops if group_of(lp.ref_id) != g_t]
+        self.pending += new
+        self.stats.deferred += len(new)
+        dirty: dict[frozenset, list[PendingLoop]] = {}
+        for p in self.pending:
+            now = frozenset((group_of(p.a_id), group_of(p.b_id)))
+            if now != p.groups:
+                dirty.setdefault(now, [])
+            p.groups = now
+        for p in self.pending:
+            if p.groups in dirty:
+                dirty[p.groups].append(p)
+        merges = []
+        for key, members in dirty.items():
+            chosen = self._evaluate(members, group_of, pose)
+            if chosen is not None:
+                accepted += [p.loop for p in chosen]
+                if len(key) == 2:
+                    merges.append((chosen[0].b_id, chosen[0].a_id, chosen[0].a_T_b))
+                self.pending = [p for p in self.pending if not any(p is q for q in chosen)]
+                for p in members:  # the others meet the corrected estimate at the next keyframe
+                    p.recheck = True
+        self.stats.pending = len(self.pending)
+        return Selection(accepted, merges)
+
+    # ------------------------------------------------------------------ within a group
+    def _check_within(self, loops: list[PendingLoop], pose) -> list:
+        """Loops within one group: accepted within the drift tolerance, rejected beyond
+        ``doubt_factor`` times it, held pending (like loops between groups) in between."""
+        if not loops:
+            return []
+        paths = torch.tensor([self.motion.paths(p.b_id, [p.a_id])[p.a_id] for p in loops], dtype=torch.float64)
+        Ta = torch.stack([pose(p.a_id) for p in loops])
+        Tb = torch.stack([pose(p.b_id) for p in loops])
+        pred, meas = se3.inverse(Ta) @ Tb, torch.stack([p.a_T_b.double() for p in loops])
+        ok = consistent(pred, meas, paths, self.model).tolist()
+        plausible = consistent(pred, meas, paths, self.model.scaled(self.doubt_factor)).tolist()
+        doubtful = [p for p, k, m in zip(loops, ok, plausible) if m and not k]
+        for p in doubtful:
+            p.groups, p.recheck = frozenset(), False  # evaluated with its group below
+        self.pending += doubtful
+        self.stats.doubtful += len(doubtful)
+        self.stats.rejected_consistency += len(loops) - sum(plausible)
+        return [p.loop for p, k in zip(loops, ok) if k]
+
+    # ------------------------------------------------------------------ across groups
+    def _evaluate(self, members: list[PendingLoop], group_of, pose) -> list[PendingLoop] | None:
+        """Loops between one pair of groups: the largest set agreeing on the transform between
+        them, when it has enough support and no disagreeing set has too (else None)."""
+        if len(members) < self.min_pairs:
+            return None
+        g_a = group_of(members[0].a_id)
+        # oriented as (a in group g_a, b in the other group, a_T_b)
+        ends = [(p.a_id, p.b_id, p.a_T_b) if group_of(p.a_id) == g_a else (p.b_id, p.a_id, se3.inverse(p.a_T_b))
+                for p in members]
+        a_ids = sorted({a for a, _, _ in ends})
+        b_ids = sorted({b for _, b, _ in ends})
+        from_a = {a: self.motion.paths(a, a_ids) for a in a_ids}
+        from_b = {b: self.motion.paths(b, b_ids) for b in b_ids}
+        A_T_B = torch.stack([implied_transform(pose(a), T, pose(b)) for a, b, T in ends])
+        meas = torch.stack([T.double() for _, _, T in ends])
+        Ta_inv = se3.inverse(torch.stack([pose(a) for a, _, _ in ends]))
+        Tb = torch.stack([pose(b) for _, b, _ in ends])
+        n = len(ends)
+        qualified: list[set[int]] = []
+        for k in range(n):  # pivot k: does loop q agree with the transform loop k implies?
+            pred = Ta_inv @ A_T_B[k] @ Tb
+            paths = torch.tensor([from_a[ends[k][0]][a] + from_b[ends[k][1]][b] for a, b, _ in ends],
+                                 dtype=torch.float64)
+            agree = {q for q, ok in enumerate(consistent(pred, meas, paths, self.model).tolist()) if ok} | {k}
+            if min(len({ends[q][0] for q in agree}), len({ends[q][1] for q in agree})) >= self.min_pairs:
+                qualified.append(agree)
+        if not qualified:
+            return None
+        best = max(qualified, key=len)
+        if any(not (s & best) for s in qualified):  # disjoint (disagreeing) sets both supported
+            self.stats.ambiguous += 1
+            return None
+        return [members[q] for q in sorted(best)]

@@ -1,0 +1,245 @@
+"""Back-end loop acceptance: loops against the map estimate, merges only on agreeing loops."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from tactile_slam.config import Config
+from tactile_slam.loop.consistency import (DriftModel, LoopGate, MotionGraph, Selection, consistent, discrepancy,
+                                          motion_mm)
+from tactile_slam.loop.detector import Loop
+from tactile_slam.posegraph import se3
+from tactile_slam.posegraph.graph import PoseGraph
+from tactile_slam.posegraph.sessions import SessionGroups
+from tactile_slam.posegraph.solver import solve
+
+MODEL = DriftModel(base_rot_deg=3.0, base_trans_mm=0.5, rot_deg_per_mm=0.1, trans_mm_per_mm=0.02, lever_mm=12.7)
+
+
+def pose(rot_axis: tuple[float, float, float], angle_deg: float, t_mm: tuple[float, float, float]) -> torch.Tensor:
+    """``(4, 4)`` float64 rigid transform, translation in mm (stored in metres)."""
+    axis = torch.tensor(rot_axis, dtype=torch.float64)
+    xi = torch.cat([torch.tensor(t_mm, dtype=torch.float64) * 1e-3, axis / axis.norm() * math.radians(angle_deg)])
+    T = se3.exp(xi)
+    T[:3, 3] = torch.tensor(t_mm, dtype=torch.float64) * 1e-3
+    return T
+
+
+def arc(n: int, step_mm: float = 1.0, turn_deg: float = 2.0) -> torch.Tensor:
+    """True ``start_T_kf`` ``(n, 4, 4)`` of a sensor sliding along a gentle arc."""
+    step = pose((0, 0, 1), turn_deg, (step_mm, 0.0, 0.0))
+    out = [torch.eye(4, dtype=torch.float64)]
+    for _ in range(n - 1):
+        out.append(out[-1] @ step)
+    return torch.stack(out)
+
+
+def drifted(true: torch.Tensor, scale: float = 1.03, rot_bias_deg: float = 0.1) -> tuple[torch.Tensor, list]:
+    """Odometry with a scale error and a rotation bias per step, and its chained estimate."""
+    bias = pose((1, 1, 0), rot_bias_deg, (0, 0, 0))
+    odo = []
+    for k in range(1, len(true)):
+        Z = se3.inverse(true[k - 1]) @ true[k]
+        Z[:3, 3] *= scale
+        odo.append(Z @ bias)
+    est = [true[0]]
+    for Z in odo:
+        est.append(est[-1] @ Z)
+    return torch.stack(est), odo
+
+
+def loop(r: int, t: int, r_T_t: torch.Tensor) -> Loop:
+    return Loop(r, t, r_T_t, 0.99, 0.9, 20, torch.eye(4, dtype=torch.float64))
+
+
+# the shell's symmetry: a half turn about the object's y axis, here through x = 4.5 mm
+SYMMETRY = pose((0, 0, 1), 0.0, (4.5, 0.0, 0.0)) @ pose((0, 1, 0), 180.0, (0.0, 0.0, 0.0)) @ \
+    pose((0, 0, 1), 0.0, (-4.5, 0.0, 0.0))
+
+
+def symmetric_false(true: torch.Tensor, r: int, t: int) -> torch.Tensor:
+    """The measurement ``r_T_t`` of a false loop on a half-turn-symmetric texture: touch ``t``
+    looks exactly like a touch at the symmetric place, so the measurement is the relative
+    pose of that place (the true relative pose composed with a half turn)."""
+    return se3.inverse(true[r]) @ SYMMETRY @ true[t]
+
+
+# ------------------------------------------------------------------ pure functions
+
+
+def test_motion_counts_translation_and_lever_rotation():
+    assert float(motion_mm(pose((0, 0, 1), 0.0, (3.0, 4.0, 0.0)), 10.0)) == pytest.approx(5.0)
+    assert float(motion_mm(pose((0, 0, 1), 90.0, (0.0, 0.0, 0.0)), 10.0)) == pytest.approx(10 * math.pi / 2)
+
+
+def test_discrepancy_and_tolerance_grow_with_path():
+    a = pose((0, 0, 1), 10.0, (1.0, 2.0, 0.0))
+    b = a @ pose((0, 0, 1), 4.0, (0.0, 0.0, 0.0))
+    b[:3, 3] += torch.tensor([1.0e-3, 0.0, 0.0], dtype=torch.float64)
+    rot, trans = discrepancy(a[None], b[None])
+    assert float(rot) == pytest.approx(4.0) and float(trans) == pytest.approx(1.0)
+    # 4 deg / 1 mm off: beyond the base tolerance (3 deg, 0.5 mm), within it after 25 mm of
+    # path; an unknown (infinite) path never passes
+    ok = consistent(a.expand(3, 4, 4), b.expand(3, 4, 4), torch.tensor([0.0, 25.0, math.inf]), MODEL)
+    assert ok.tolist() == [False, True, False]
+    assert MODEL.tolerance(25.0) == pytest.approx((5.5, 1.0))
+
+
+def test_motion_graph_shortest_paths_are_bounded_and_local():
+    g = MotionGraph(lever_mm=10.0)
+    step = pose((0, 0, 1), 0.0, (1.0, 0.0, 0.0))
+    for k in range(9):
+        g.add_edge(k, k + 1, step)
+    g.add_edge(0, 9, pose((0, 0, 1), 0.0, (2.0, 0.0, 0.0)))  # a loop closes the chain
+    g.add_node(20)
+    d = g.paths(0, [5, 8, 20])
+    assert d[5] == pytest.approx(5.0) and d[8] == pytest.approx(3.0) and d[20] == math.inf
+    assert g.paths(0, [5], limit=4.0)[5] == math.inf
+
+
+# ------------------------------------------------------------------ within one group
+
+
+def test_doubtful_loops_within_a_group_need_agreement():
+    """Beyond the tolerance but within doubt_factor x it (a tracker that slipped, or a
+    periodic false match): held until a second loop from distinct keyframes agrees."""
+    true = arc(30)
+    est, odo = drifted(true, scale=1.0, rot_bias_deg=0.0)
+    slip = pose((0, 0, 1), 6.0, (0.0, 0.0, 0.0))  # the estimate of 25..29 turned by 6 deg
+    est[25:] = est[24] @ slip @ se3.inverse(est[24]) @ est[25:]
+    gate = LoopGate(MODEL)
+    for k, Z in enumerate(odo):
+        gate.add_factor(k, k + 1, Z)
+    first = loop(20, 26, se3.inverse(true[20]) @ true[26])
+    assert gate.select(26, [first], lambda k: 0, lambda k: est[k]).accepted == []
+    assert gate.stats.doubtful == 1 and len(gate.pending) == 1
+    second = loop(21, 28, se3.inverse(true[21]) @ true[28])
+    sel = gate.select(28, [second], lambda k: 0, lambda k: est[k])
+    assert sel.accepted == [first, second] and sel.merges == [] and gate.pending == []
+
+
+def test_symmetric_false_loop_rejected_true_loop_with_drift_accepted():
+    true = arc(30)
+    est, odo = drifted(true)
+    gate = LoopGate(MODEL)
+    gate.add_node(0)
+    for k, Z in enumerate(odo):
+        gate.add_factor(k, k + 1, Z)
+    t = 29
+    true_loop = loop(0, t, se3.inverse(true[0]) @ true[t])
+    false_loop = loop(4, t, symmetric_false(true, 4, t))
+    # the drifted estimate really is off: a fixed tolerance of the base alone would reject the true loop
+    rot, trans = discrepancy((se3.inverse(est[0]) @ est[t])[None], true_loop.ref_T_tar[None])
+    assert float(rot) > 1.0 and float(trans) > MODEL.base_trans_mm
+    sel = gate.select(t, [true_loop, false_loop], lambda k: 0, lambda k: est[k])
+    assert sel.accepted == [true_loop] and sel.merges == []
+    assert gate.stats.rejected_consistency == 1
+
+
+def test_recent_loop_shortens_the_drift_path():
+    true = arc(60, turn_deg=6.0)  # a full circle: keyframe 58 is back next to keyframe 0
+    _, odo = drifted(true)
+    gate = LoopGate(MODEL)
+    for k, Z in enumerate(odo):
+        gate.add_factor(k, k + 1, Z)
+    far = gate.motion.paths(59, [0])[0]
+    gate.add_factor(0, 58, se3.inverse(true[0]) @ true[58])  # an accepted loop near the query
+    near = gate.motion.paths(59, [0])[0]
+    assert near < 0.1 * far
+
+
+# ------------------------------------------------------------------ across groups
+
+
+@pytest.fixture()
+def two_sessions():
+    """Session 0 (keyframes 0-14) and session 1 (15-29) on one arc, each in its own frame."""
+    true = arc(30)
+    graph, groups, gate = PoseGraph(), SessionGroups(), LoopGate(MODEL)
+    for k in range(30):
+        s = 0 if k < 15 else 1
+        if groups.add_keyframe(k, s):
+            graph.add_node(k)
+            graph.add_prior(k)
+            gate.add_node(k)
+        else:
+            Z = se3.inverse(true[k - 1]) @ true[k]
+            graph.add_node(k, graph.pose(k - 1) @ Z)
+            graph.add_between(k - 1, k, Z)
+            gate.add_factor(k - 1, k, Z)
+    return true, graph, groups, gate
+
+
+def _apply(sel, graph, groups, gate):
+    for lp in sel.accepted:
+        graph.add_between(lp.ref_id, lp.tar_id, lp.ref_T_tar, kind="loop")
+        gate.add_factor(lp.ref_id, lp.tar_id, lp.ref_T_tar)
+    for t, r, Z in sel.merges:
+        groups.merge(graph, t, [(r, Z)])
+
+
+def test_single_inter_group_loop_is_not_merged(two_sessions):
+    true, graph, groups, gate = two_sessions
+    false_loop = loop(3, 16, symmetric_false(true, 3, 16))
+    sel = gate.select(16, [false_loop], groups.group_of, graph.pose)
+    assert sel.accepted == [] and sel.merges == [] and len(gate.pending) == 1
+    # a second false loop from the *same* query keyframe is no independent evidence
+    sel = gate.select(16, [loop(5, 16, symmetric_false(true, 5, 16))], groups.group_of,
+                      graph.pose)
+    assert sel.merges == [] and groups.group_of(16) != groups.group_of(3)
+
+
+def test_two_agreeing_inter_group_loops_merge_with_correct_poses(two_sessions):
+    true, graph, groups, gate = two_sessions
+    false_loop = loop(3, 17, symmetric_false(true, 3, 17))
+    first = loop(12, 17, se3.inverse(true[12]) @ true[17])
+    sel = gate.select(17, [first, false_loop], groups.group_of, graph.pose)
+    assert sel.merges == []
+    second = loop(10, 19, se3.inverse(true[10]) @ true[19])
+    sel = gate.select(19, [second], groups.group_of, graph.pose)
+    assert {(lp.ref_id, lp.tar_id) for lp in sel.accepted} == {(12, 17), (10, 19)}
+    assert len(sel.merges) == 1 and [(p.a_id, p.b_id) for p in gate.pending] == [(3, 17)]
+    _apply(sel, graph, groups, gate)
+    assert groups.group_of(29) == groups.group_of(0)
+    solve(graph)
+    # the false loop left out of the merge meets the merged estimate at the next keyframe
+    assert gate.select(20, [], groups.group_of, graph.pose).accepted == [] and gate.pending == []
+    assert gate.stats.rejected_consistency == 1
+    est = graph.poses()
+    rot, trans = discrepancy(se3.inverse(est[0]) @ est, true)  # true: start = keyframe 0
+    assert float(rot.max()) < 1e-6 and float(trans.max()) < 1e-6
+
+
+def test_disagreeing_supported_sets_do_not_merge(two_sessions):
+    """Both faces of a symmetric object seen: two agreeing true and two agreeing false loops."""
+    true, graph, groups, gate = two_sessions
+    loops17 = [loop(12, 17, se3.inverse(true[12]) @ true[17]),
+               loop(2, 17, symmetric_false(true, 2, 17))]
+    loops19 = [loop(10, 19, se3.inverse(true[10]) @ true[19]),
+               loop(4, 19, symmetric_false(true, 4, 19))]
+    gate.select(17, loops17, groups.group_of, graph.pose)
+    sel = gate.select(19, loops19, groups.group_of, graph.pose)
+    assert sel.merges == [] and sel.accepted == [] and gate.stats.ambiguous == 1 and len(gate.pending) == 4
+
+
+def test_pending_loops_are_checked_once_their_groups_join(two_sessions):
+    true, graph, groups, gate = two_sessions
+    late = loop(1, 28, se3.inverse(true[1]) @ true[28])
+    late_false = loop(6, 27, symmetric_false(true, 6, 27))
+    gate.select(27, [late_false], groups.group_of, graph.pose)
+    gate.select(28, [late], groups.group_of, graph.pose)
+    # other loops merge the groups, then the pending loops are swept
+    joint = loop(12, 17, se3.inverse(true[12]) @ true[17])
+    _apply(Selection([joint], [(17, 12, joint.ref_T_tar)]), graph, groups, gate)
+    sel = gate.select(29, [], groups.group_of, graph.pose)
+    assert sel.accepted == [late] and gate.pending == [] and gate.stats.rejected_consistency == 1
+
+
+def test_backend_config_defaults_build_a_gate():
+    from tactile_slam.backend import BackEnd
+
+    be = BackEnd(Config(), loop_mode=None)
+    assert be.gate is not None and be.gate.model.lever_mm == pytest.approx(0.5 * math.hypot(320, 240) * 0.0634)
