@@ -229,7 +229,7 @@ class ReconConfig:
     poisson_max_depth: int = 11
     # Poisson input budget: more voxel-averaged points than this coarsen the voxel and
     # the cell together (bounds meshing time and memory on large scans; docs/reconstruction.md)
-    poisson_max_points: int = 1_000_000
+    poisson_max_points: int = 500_000
     trim_density_quantile: float = 0.02
     trim_distance_mm: float = 0.5
 

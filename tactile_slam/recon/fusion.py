@@ -197,9 +197,12 @@ def fuse(
             beats = (w_own > w_t[i]) | ((w_own == w_t[i]) & (n > t))
             owned[i[(w_own > 0) & near & beats]] = False
         p = p + shift / total.unsqueeze(1)
-        grid = grid.clone()
-        grid[mask] = p
-        normals = (grid_normals(grid)[mask].double() @ pose_t[:3, :3].T).float()
+        # normals on the contact box plus a 1 px margin: the same central differences
+        c0, c1, r0, r1 = boxes[t].tolist()
+        r0, c0 = max(r0 - 1, 0), max(c0 - 1, 0)
+        sub, sub_mask = grid[r0:r1 + 2, c0:c1 + 2].clone(), mask[r0:r1 + 2, c0:c1 + 2]
+        sub[sub_mask] = p
+        normals = (grid_normals(sub)[sub_mask].double() @ pose_t[:3, :3].T).float()
         points = (p.double() @ pose_t[:3, :3].T + pose_t[:3, 3]).float()
         out.append(FusedKeyframe(id=t, mask=mask, points=points, normals=normals, weights=w_t, owned=owned,
                                  outward=-pose_t[:3, 2].float()))

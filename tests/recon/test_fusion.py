@@ -184,3 +184,19 @@ def test_box_projection_keeps_every_point_that_can_read_the_box():
     assert 0 < len(i) < len(pts)
     assert (w_bil[dropped] == 0).all() and (w_near[dropped] == 0).all()
     assert (w_bil[i] > 0).float().mean() > 0.5
+
+
+def test_fused_normals_are_central_differences_of_the_fused_grid():
+    """Normals computed on the contact box equal those of the whole fused image grid,
+    also for a contact that touches the image border."""
+    from tactile_slam.loop.coverage import point_map
+
+    box = (0, 120, 0, 200)
+    kfs = [flat_keyframe(0, *box), flat_keyframe(1, *box)]
+    fused = fuse(kfs, torch.stack([shifted(), shifted(dx_px=100, dz_m=1e-4)]), CFG)
+    fk = fused[0]  # keyframe 0 sits at the start frame: its points are in its own frame
+    grid = point_map(kfs[0].frame.height, S)[0]
+    grid[fk.mask] = fk.points
+    expected = grid_normals(grid)[fk.mask]
+    assert float(expected[:, 0].abs().max()) > 1e-3  # the fused surface is tilted where the sheets blend
+    torch.testing.assert_close(fk.normals, expected, atol=1e-6, rtol=0)
