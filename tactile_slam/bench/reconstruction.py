@@ -1,90 +1,98 @@
 """Reconstruction accuracy (CD, F-score, NCD) and fusion/meshing time on simulated scans.
 
 For each object and size (the paper's Table VI objects at its small and large print
-sizes) a hand-held scan is simulated with :mod:`tactile_slam.sim`, keyframes are taken
-every ``--stride`` in-contact frames, and :func:`tactile_slam.recon.reconstruct` runs
-with the ground-truth poses (``start`` = the first keyframe). Both the fused grid mesh
-and the Poisson mesh are scored with :func:`tactile_slam.eval.recon_metrics.recon_report`
-(ground-truth placement, and after ICP), for each fusion gate in ``--gates``.
+sizes) a hand-held scan is simulated with :mod:`tactile_slam.sim` (``--level``
+gradients: noise-free gradient maps; image: GelSight Mini video through the colour
+model, decoded by the shipped calibration model), the full system
+(:class:`tactile_slam.pipeline.offline.OfflinePipeline`, method ``gelslam``) runs on it,
+and :func:`tactile_slam.recon.reconstruct` meshes the run's keyframes three ways:
+
+* ``gt_all``: every keyframe of the run, ground-truth poses (the mapping's own limit);
+* ``estimated``: the largest connected group, the poses the system estimated;
+* ``gt_group``: the same group's keyframes with ground-truth poses, so the gap between
+  ``gt_all`` and ``gt_group`` is what unconnected sessions cost and the gap between
+  ``gt_group`` and ``estimated`` is what pose error costs.
+
+Each Poisson mesh is scored with :func:`tactile_slam.eval.recon_metrics.recon_report`
+at the ground-truth placement of its start frame and after ICP; the fused grid mesh
+(which never closes untouched regions) gets the surface metrics at that placement.
+``--timing N`` also times fusion and meshing of N touches spread over a 120 mm lime
+(every touch a coverage keyframe); ``--objects`` with no names skips the table.
 """
 
 from __future__ import annotations
 
+import json
+import tempfile
 import time
+from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import torch
-from scipy.spatial.transform import Rotation
 
 from tactile_slam.bench.common import write_json
 from tactile_slam.config import Config
-from tactile_slam.eval.recon_metrics import recon_report, touch_poses
+from tactile_slam.eval.recon_metrics import recon_report, surface_metrics, touch_poses
 from tactile_slam.geometry.frame import FrameBuilder
+from tactile_slam.io import open_source
+from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
 from tactile_slam.recon import reconstruct
-from tactile_slam.sim.motions import make_motion
+from tactile_slam.sim.episode import SimulationSettings, read_episode, simulate_episode
 from tactile_slam.sim.objects import make_object
 from tactile_slam.sim.renderer import GelRenderer
 from tactile_slam.tracking.keyframe import Keyframe
 
 # The paper's Table VI sizes (mm) of the small and large prints.
 SIZES_MM = {"seed": (9.5, 14.3), "shell": (18.4, 27.6), "dice": (10.0, 15.0), "lime": (15.0, 29.9)}
+VARIANTS = ("gt_all", "estimated", "gt_group")
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--objects", nargs="+", default=list(SIZES_MM), choices=sorted(SIZES_MM))
+    parser.add_argument("--objects", nargs="*", default=list(SIZES_MM), choices=sorted(SIZES_MM),
+                        help="objects of the accuracy table (none: skip it)")
     parser.add_argument("--sizes", nargs="+", default=["small", "large"], choices=["small", "large"])
-    parser.add_argument("--frames", type=int, default=3000, help="simulated scan frames per object")
-    parser.add_argument("--stride", type=int, default=5, help="keyframe every N in-contact frames")
-    parser.add_argument("--gates", type=float, nargs="+", default=[3.0, 1.0, 0.5], help="fusion gates, mm")
-    parser.add_argument("--samples", type=int, default=100_000, help="surface samples for CD/F-score")
-    parser.add_argument("--touches", type=int, default=100, help="NCD touches")
+    parser.add_argument("--frames", type=int, default=1500, help="simulated scan frames per object")
+    parser.add_argument("--level", choices=["gradients", "image"], default="gradients",
+                        help="simulated input: gradient maps, or video through the calibration model")
+    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    parser.add_argument("--samples", type=int, default=50_000, help="surface samples for CD/F-score")
+    parser.add_argument("--touches", type=int, default=50, help="NCD touches")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--partial", action="store_true", help="trim the Poisson mesh (watertight=False)")
+    parser.add_argument("--work", default=None, help="keep episodes and runs here (default: a temporary folder)")
     parser.add_argument("--timing", type=int, default=0, metavar="N",
-                        help="instead: time fusion + meshing of N touches spread over a 120 mm lime")
-    parser.add_argument("--noise", type=float, nargs=2, default=[0.0, 0.0], metavar=("MM", "DEG"),
-                        help="perturb keyframe poses by Gaussian noise (std per axis) to mimic estimated poses")
+                        help="also time fusion + meshing of N touches spread over a 120 mm lime")
 
 
-def simulated_keyframes(name: str, size_mm: float, frames: int, stride: int, seed: int, config: Config):
-    """Render a scan; return (gt mesh, keyframes, ``(K, 4, 4)`` object_T_sensor)."""
-    mesh = make_object(name, size_mm, seed)
-    renderer = GelRenderer(mesh, config)
-    motion = make_motion(renderer, "scan", frames, seed)
-    builder = FrameBuilder(config)
-    kfs, poses = [], []
-    count = 0
-    batch = 32
-    for a in range(0, len(motion.object_T_sensor), batch):
-        sel = np.flatnonzero(motion.pressed[a:a + batch]) + a
-        if len(sel) == 0:
-            continue
-        maps = renderer.render(motion.object_T_sensor[sel])
-        for j, i in enumerate(sel):
-            if not bool(maps.in_contact[j]):
-                continue
-            if count % stride == 0:
-                frame = builder.from_gradients(maps.gradients[j:j + 1], contact=maps.contact[j:j + 1],
-                                               index=torch.tensor([int(i)]))
-                kfs.append(Keyframe(id=len(kfs), session=0, frame=frame, new_session=not kfs,
-                                    prev_T_kf=torch.eye(4, dtype=torch.float64)))
-                poses.append(motion.object_T_sensor[i])
-            count += 1
-    return mesh, kfs, np.stack(poses)
+def system_run(episode_dir: Path, run_dir: Path, level: str, config: Config) -> tuple[list, dict, dict, dict]:
+    """Run the full system on a simulated episode.
+
+    Returns:
+        keyframes, ``{id: (4, 4) start_T_kf}`` float64 estimated poses, ``{id: group}``,
+        and the run's statistics.
+    """
+    source = open_source(episode_dir if level == "image" else episode_dir / "gt_gradients.npz")
+    result = OfflinePipeline(source, config, run_dir, RunOptions(progress=False, mesh=False)).run()
+    records = json.loads((run_dir / "keyframes.json").read_text())
+    poses = {r["id"]: torch.tensor(r["pose"], dtype=torch.float64) for r in records}
+    groups = {r["id"]: r["group"] for r in records}
+    return result.keyframes, poses, groups, result.stats
 
 
-def perturb(o_T_s: np.ndarray, noise_mm: float, noise_deg: float, seed: int) -> np.ndarray:
-    """Right-multiply poses 1.. by random small motions (std per axis); pose 0 is kept."""
-    if noise_mm == 0 and noise_deg == 0:
-        return o_T_s
-    rng = np.random.default_rng(seed + 1)
-    out = o_T_s.copy()
-    for k in range(1, len(out)):
-        d = np.eye(4)
-        d[:3, :3] = Rotation.from_rotvec(np.radians(noise_deg) * rng.normal(size=3)).as_matrix()
-        d[:3, 3] = noise_mm * 1e-3 * rng.normal(size=3)
-        out[k] = out[k] @ d
-    return out
+def variant_input(variant: str, keyframes: list, est: dict, groups: dict, gt: np.ndarray):
+    """Keyframes, ``(K, 4, 4)`` start_T_kf and ``(4, 4)`` ground-truth object_T_start
+    of one variant (see the module docstring). ``gt``: ``(T, 4, 4)`` object_T_sensor."""
+    if variant == "gt_all":
+        kfs = keyframes
+    else:
+        label = Counter(groups[k.id] for k in keyframes).most_common(1)[0][0]
+        kfs = [k for k in keyframes if groups[k.id] == label]
+    o_T_kf = np.stack([gt[k.video_index] for k in kfs])
+    if variant == "estimated":
+        poses = torch.stack([est[k.id] for k in kfs])
+        return kfs, poses, o_T_kf[0] @ np.linalg.inv(poses[0].numpy())
+    return kfs, torch.from_numpy(np.linalg.inv(o_T_kf[0]) @ o_T_kf), o_T_kf[0]
 
 
 def timing_run(n_touches: int, seed: int, config: Config) -> dict:
@@ -98,8 +106,8 @@ def timing_run(n_touches: int, seed: int, config: Config) -> dict:
     for a in range(0, len(o_T_s), 32):
         maps = renderer.render(o_T_s[a:a + 32])
         for j in range(len(maps.contact)):
-            if bool(maps.contact[j].any()):
-                frame = builder.from_gradients(maps.gradients[j:j + 1], contact=maps.contact[j:j + 1])
+            if bool(maps.contact[j].any()):  # clone: a slice would keep the whole batch alive
+                frame = builder.from_gradients(maps.gradients[j:j + 1].clone(), contact=maps.contact[j:j + 1].clone())
                 kfs.append(Keyframe(id=len(kfs), session=0, frame=frame, new_session=not kfs,
                                     prev_T_kf=torch.eye(4, dtype=torch.float64)))
                 poses.append(o_T_s[a + j])
@@ -114,43 +122,62 @@ def timing_run(n_touches: int, seed: int, config: Config) -> dict:
     return out
 
 
+def object_run(name: str, size_label: str, args, config: Config, work: Path) -> list[dict]:
+    """Simulate, run the system and score every variant of one object and size."""
+    size = SIZES_MM[name][0 if size_label == "small" else 1]
+    ep, run_dir = work / f"{name}_{size_label}" / "episode", work / f"{name}_{size_label}" / "run"
+    t0 = time.perf_counter()
+    simulate_episode(ep, SimulationSettings(object=name, kind="scan", seed=args.seed, frames=args.frames,
+                                            level=args.level, size_mm=size))
+    t1 = time.perf_counter()
+    keyframes, est, groups, run_stats = system_run(ep, run_dir, args.level, config)
+    t2 = time.perf_counter()
+    episode = read_episode(ep)
+    gt_mesh = episode.mesh()
+    system = {k: run_stats.get(k) for k in ("frames", "contact_frames", "keyframes", "sessions", "groups", "loops",
+                                            "coverage_keyframes", "fps")}
+    out = []
+    for variant in args.variants:
+        kfs, poses, object_T_start = variant_input(variant, keyframes, est, groups, episode.object_T_sensor)
+        res = reconstruct(kfs, poses, config)
+        entry = {"object": name, "size": size_label, "size_mm": size, "level": args.level, "variant": variant,
+                 "keyframes": len(kfs), "simulation_s": t1 - t0, "system_s": t2 - t1, "system": system,
+                 "stats": res.stats}
+        entry["mesh"] = recon_report(res.mesh.to_open3d(), gt_mesh, object_T_start, icp=True,
+                                     n_samples=args.samples, n_touches=args.touches, seed=args.seed, config=config)
+        fused = res.fused_mesh.to_open3d().transform(object_T_start)
+        fused.compute_triangle_normals()
+        entry["fused"] = {"gt_pose": surface_metrics(fused, gt_mesh, args.samples, args.seed)}
+        print(_line(entry), flush=True)
+        out.append(entry)
+    return out
+
+
 def run(args):
+    torch.set_num_threads(1)
     config = Config()
     config.recon.watertight = not args.partial
+    doc = {"settings": vars(args) | {"func": None}, "runs": []}
+    path = write_json(args.out, "reconstruction", doc)
+    with tempfile.TemporaryDirectory() as tmp:
+        work = Path(args.work) if args.work else Path(tmp)
+        for name in args.objects:
+            for size_label in args.sizes:
+                doc["runs"] += object_run(name, size_label, args, config, work)
+                # rewritten after every object so a long benchmark leaves partial results
+                path = write_json(args.out, "reconstruction", doc)
     if args.timing:
-        return write_json(args.out, "reconstruction", {"settings": vars(args) | {"func": None},
-                                                       "timing": timing_run(args.timing, args.seed, config)})
-    results = []
-    for name in args.objects:
-        for size_label in args.sizes:
-            size = SIZES_MM[name][0 if size_label == "small" else 1]
-            t0 = time.perf_counter()
-            gt, kfs, o_T_s = simulated_keyframes(name, size, args.frames, args.stride, args.seed, config)
-            sim_s = time.perf_counter() - t0
-            start_T_kf = torch.from_numpy(np.linalg.inv(o_T_s[0]) @ perturb(o_T_s, *args.noise, args.seed))
-            for gate in args.gates:
-                config.recon.fusion_gate_mm = gate
-                res = reconstruct(kfs, start_T_kf, config)
-                entry = {"object": name, "size": size_label, "size_mm": size, "gate_mm": gate,
-                         "keyframes": len(kfs), "simulation_s": sim_s,
-                         "poses": "ground truth" if args.noise == [0.0, 0.0] else f"noisy {args.noise} mm/deg",
-                         "stats": res.stats}
-                for label, mesh in (("fused", res.fused_mesh), ("mesh", res.mesh)):
-                    rep = recon_report(mesh.to_open3d(), gt, o_T_s[0], icp=True, n_samples=args.samples,
-                                       n_touches=args.touches, seed=args.seed, config=config)
-                    entry[label] = rep
-                print(_line(entry), flush=True)
-                results.append(entry)
-                # rewritten after every run so a long benchmark leaves partial results
-                path = write_json(args.out, "reconstruction", {"settings": vars(args) | {"func": None},
-                                                                "runs": results})
+        doc["timing"] = timing_run(args.timing, args.seed, config)
+        path = write_json(args.out, "reconstruction", doc)
     return path
 
 
 def _line(e: dict) -> str:
-    m = e["mesh"]
-    return (f"{e['object']:6s} {e['size']:5s} gate {e['gate_mm']:.1f} mm  K {e['keyframes']:4d} "
-            f"cov {e['stats']['coverage_keyframes']:4d}  fused CD {e['fused']['gt_pose']['chamfer_mm']:.3f} "
-            f"mesh CD {m['gt_pose']['chamfer_mm']:.3f} / ICP {m['icp']['chamfer_mm']:.3f} mm  "
-            f"NCD {m['gt_pose']['ncd']:.3f} / {m['icp']['ncd']:.3f}  "
-            f"fusion {e['stats']['coverage_s'] + e['stats']['fusion_s']:.1f} s meshing {e['stats']['meshing_s']:.1f} s")
+    m, st = e["mesh"], e["stats"]
+    return (f"{e['object']:6s} {e['size']:5s} {e['variant']:9s} K {e['keyframes']:4d} "
+            f"cov {st['coverage_keyframes']:4d}  fused CD {e['fused']['gt_pose']['chamfer_mm']:.3f} "
+            f"(acc {e['fused']['gt_pose']['recon_to_gt_mm']:.3f})  mesh "
+            f"CD {m['gt_pose']['chamfer_mm']:.3f} / ICP {m['icp']['chamfer_mm']:.3f} mm "
+            f"(acc {m['icp']['recon_to_gt_mm']:.3f}, compl {m['icp']['gt_to_recon_mm']:.3f})  "
+            f"F@0.1 {m['icp']['fscore']['0.1']['f']:.3f}  NCD {m['gt_pose']['ncd']:.3f} / {m['icp']['ncd']:.3f}  "
+            f"fusion {st['coverage_s'] + st['fusion_s']:.1f} s meshing {st['meshing_s']:.1f} s")
