@@ -11,9 +11,12 @@ tell; the map can:
   the graph of accepted factors, each factor weighted by the motion it measures
   (:func:`motion_mm`). Chains of relative measurements drift in proportion to the motion they
   chain; a recent loop near both keyframes makes the path (and the tolerance) short again.
-* **across groups** no prediction exists; :class:`PendingLoops` holds such loops until
-  loops from enough distinct query keyframes agree on the transform between the two groups
-  (:func:`implied_transform`, checked like a loop within one group through one of them).
+  Far beyond the tolerance a loop is rejected; a little beyond it (a tracker that slipped,
+  or a false match one period away) it needs corroboration, as below.
+* **across groups** no prediction exists; :class:`LoopGate` holds such loops until enough
+  of them, from distinct keyframes on both sides, agree on the transform between the two
+  groups (:func:`implied_transform`, each checked through another like a loop within one
+  group).
 
 :class:`MotionGraph` keeps the weighted adjacency incrementally (one entry per factor) and
 answers bounded shortest-path queries, so a check costs the size of the neighbourhood it
@@ -48,9 +51,16 @@ class DriftModel:
     trans_mm_per_mm: float
     lever_mm: float
 
-    def tolerance(self, path_mm: float) -> tuple[float, float]:
+    def tolerance(self, path_mm: float | torch.Tensor) -> tuple:
         """``(rotation deg, translation mm)`` tolerance after ``path_mm`` of drift path."""
         return self.base_rot_deg + self.rot_deg_per_mm * path_mm, self.base_trans_mm + self.trans_mm_per_mm * path_mm
+
+    def half_turn_path_mm(self) -> float:
+        """The drift path beyond which the rotation tolerance exceeds 180 degrees (nothing
+        can be told from the estimate any more); ``inf`` without rotation drift."""
+        if self.rot_deg_per_mm <= 0:
+            return math.inf
+        return max(180.0 - self.base_rot_deg, 0.0) / self.rot_deg_per_mm
 
     def scaled(self, factor: float) -> DriftModel:
         """The same model with every tolerance ``factor`` times larger."""
@@ -67,8 +77,9 @@ def motion_mm(a_T_b: torch.Tensor, lever_mm: float) -> torch.Tensor:
 
 
 def discrepancy(predicted: torch.Tensor, measured: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rotation angle (deg) and translation distance (mm) between ``(B, 4, 4)`` relative
-    poses (metres): the error of ``predicted^-1 . measured``. Returns two ``(B,)`` float64."""
+    """Rotation angle (deg) of ``predicted^-1 . measured`` and distance (mm) between the
+    translations of ``(B, 4, 4)`` relative poses ``r_T_t`` (metres: where each puts ``t`` in
+    ``r``'s frame). Returns two ``(B,)`` float64."""
     d = se3.inverse(predicted.double()) @ measured.double()
     cos = ((d[:, 0, 0] + d[:, 1, 1] + d[:, 2, 2] - 1.0) / 2.0).clamp(-1.0, 1.0)
     return torch.rad2deg(torch.arccos(cos)), torch.linalg.vector_norm(predicted[:, :3, 3] - measured[:, :3, 3],
@@ -89,8 +100,8 @@ def consistent(predicted: torch.Tensor, measured: torch.Tensor, path_mm: torch.T
     """
     rot, trans = discrepancy(predicted, measured)
     path = path_mm.double()
-    return torch.isfinite(path) & (rot <= model.base_rot_deg + model.rot_deg_per_mm * path) & \
-        (trans <= model.base_trans_mm + model.trans_mm_per_mm * path)
+    rot_tol, trans_tol = model.tolerance(path)
+    return torch.isfinite(path) & (rot <= rot_tol) & (trans <= trans_tol)
 
 
 def implied_transform(start_T_a: torch.Tensor, a_T_b: torch.Tensor, start_T_b: torch.Tensor) -> torch.Tensor:
@@ -106,9 +117,6 @@ class MotionGraph:
     def __init__(self, lever_mm: float) -> None:
         self.lever_mm = lever_mm
         self._adj: dict[int, list[tuple[int, float]]] = {}
-
-    def __contains__(self, node: int) -> bool:
-        return node in self._adj
 
     def add_node(self, node: int) -> None:
         self._adj.setdefault(node, [])
@@ -218,6 +226,7 @@ class LoopGate:
         self.model = model
         self.min_pairs = min_pairs
         self.doubt_factor = doubt_factor
+        self._limit = model.scaled(doubt_factor).half_turn_path_mm()  # drift paths searched up to this
         self.motion = MotionGraph(model.lever_mm)
         self.pending: list[PendingLoop] = []
         self.stats = GateStats()
@@ -277,12 +286,15 @@ class LoopGate:
         ``doubt_factor`` times it, held pending (like loops between groups) in between."""
         if not loops:
             return []
-        paths = torch.tensor([self.motion.paths(p.b_id, [p.a_id])[p.a_id] for p in loops], dtype=torch.float64)
+        paths = torch.tensor([self.motion.paths(p.b_id, [p.a_id], self._limit)[p.a_id] for p in loops],
+                             dtype=torch.float64)
         Ta = torch.stack([pose(p.a_id) for p in loops])
         Tb = torch.stack([pose(p.b_id) for p in loops])
         pred, meas = se3.inverse(Ta) @ Tb, torch.stack([p.a_T_b.double() for p in loops])
         ok = consistent(pred, meas, paths, self.model).tolist()
-        plausible = consistent(pred, meas, paths, self.model.scaled(self.doubt_factor)).tolist()
+        # beyond the search limit the doubt band exceeds a half turn: nothing can be rejected
+        plausible = (consistent(pred, meas, paths, self.model.scaled(self.doubt_factor))
+                     | ~torch.isfinite(paths)).tolist()
         doubtful = [p for p, k, m in zip(loops, ok, plausible) if m and not k]
         for p in doubtful:
             p.groups, p.recheck = frozenset(), False  # evaluated with its group below
@@ -303,8 +315,8 @@ class LoopGate:
                 for p in members]
         a_ids = sorted({a for a, _, _ in ends})
         b_ids = sorted({b for _, b, _ in ends})
-        from_a = {a: self.motion.paths(a, a_ids) for a in a_ids}
-        from_b = {b: self.motion.paths(b, b_ids) for b in b_ids}
+        from_a = {a: self.motion.paths(a, a_ids, self._limit) for a in a_ids}
+        from_b = {b: self.motion.paths(b, b_ids, self._limit) for b in b_ids}
         A_T_B = torch.stack([implied_transform(pose(a), T, pose(b)) for a, b, T in ends])
         meas = torch.stack([T.double() for _, _, T in ends])
         Ta_inv = se3.inverse(torch.stack([pose(a) for a, _, _ in ends]))

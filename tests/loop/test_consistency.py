@@ -139,6 +139,19 @@ def test_symmetric_false_loop_rejected_true_loop_with_drift_accepted():
     assert gate.stats.rejected_consistency == 1
 
 
+def test_beyond_a_half_turn_of_drift_nothing_is_rejected():
+    """When the doubt band exceeds 180 degrees the estimate cannot refute a loop: it waits for
+    agreement instead of being rejected, and the drift search stops there."""
+    loose = DriftModel(base_rot_deg=3.0, base_trans_mm=0.5, rot_deg_per_mm=10.0, trans_mm_per_mm=0.02, lever_mm=12.7)
+    assert loose.scaled(5.0).half_turn_path_mm() == pytest.approx((180 - 15) / 50)
+    true = arc(8)
+    gate = LoopGate(loose)
+    for k in range(7):
+        gate.add_factor(k, k + 1, se3.inverse(true[k]) @ true[k + 1])
+    sel = gate.select(7, [loop(0, 7, symmetric_false(true, 0, 7))], lambda k: 0, lambda k: true[k])
+    assert sel.accepted == [] and gate.stats.rejected_consistency == 0 and gate.stats.doubtful == 1
+
+
 def test_recent_loop_shortens_the_drift_path():
     true = arc(60, turn_deg=6.0)  # a full circle: keyframe 58 is back next to keyframe 0
     _, odo = drifted(true)
