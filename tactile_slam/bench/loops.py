@@ -18,11 +18,19 @@ queried in order. A contact period is a session.
   candidate (the worst case: no coverage pruning), and of the descriptor-index query alone
   up to the largest ``--index-sizes`` (keyframe descriptors replicated with noise).
 * **Backends**: OpenCV vs kornia SIFT: extraction time and accuracy on one episode.
+* **Back end** (``--backend-objects``): the tracker runs over every simulated frame of an
+  episode, and its keyframes (with their real odometry) go through the
+  :class:`~tactile_slam.backend.BackEnd` twice: with the loop gate (``loop.consistency``:
+  loops checked against the map, merges only on agreeing loops) and without it (every
+  verified loop accepted, groups merged on one loop). Scored on the loops that end up in
+  the graph: accepted, false, query recall (queries with a correct loop / queries with a
+  true revisit among all earlier keyframes), groups left, and the gate's counters.
 """
 
 from __future__ import annotations
 
 import argparse
+import math
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -32,7 +40,7 @@ import torch
 
 from tactile_slam.bench.common import timing_stats, write_json
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import FrameBuilder
+from tactile_slam.geometry.frame import Frame, FrameBuilder
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import LoopDetector, rigid_inverse
 from tactile_slam.loop.retrieval import DescriptorIndex, IndexSettings
@@ -43,17 +51,20 @@ EYE = torch.eye(4, dtype=torch.float64)
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--objects", nargs="+", default=["seed", "shell", "dice", "lime", "knurled"])
+    p.add_argument("--objects", nargs="*", default=["seed", "shell", "dice", "lime", "knurled"])
     p.add_argument("--kinds", nargs="+", default=["tracking", "scan"], help="episode kinds for accuracy")
     p.add_argument("--frames", type=int, default=520, help="frames per tracking episode (scans: 3x)")
     p.add_argument("--stride", type=int, default=8, help="keyframe every N in-contact frames (paper: 7.7)")
     p.add_argument("--overlap", type=float, default=0.3, help="true-revisit overlap fraction")
     p.add_argument("--modes", nargs="+", default=["full", "only_sift"], help="loop modes to score")
-    p.add_argument("--sizes", nargs="+", type=int, default=[100, 1000], help="map sizes for detect timing")
-    p.add_argument("--index-sizes", nargs="+", type=int, default=[100, 1000, 5000])
+    p.add_argument("--sizes", nargs="*", type=int, default=[100, 1000], help="map sizes for detect timing (none: skip)")
+    p.add_argument("--index-sizes", nargs="*", type=int, default=[100, 1000, 5000])
     p.add_argument("--timing-object", default="shell")
     p.add_argument("--queries", type=int, default=30, help="timed queries per map size")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--backend-objects", nargs="*", default=["seed", "shell", "lime", "knurled"],
+                   help="objects for the back-end (loop gate) accuracy; none: skip")
+    p.add_argument("--backend-kinds", nargs="+", default=["scan"])
 
 
 # ------------------------------------------------------------------ simulated keyframes
@@ -87,6 +98,83 @@ def simulate_keyframes(obj: str, kind: str, n_frames: int, stride: int, seed: in
             kfs.append(Keyframe(i, sess, frames[j], not kfs or kfs[-1].session != sess, EYE.clone()))
             poses.append(motion.object_T_sensor[idx[j]])
     return kfs, np.asarray(poses)
+
+
+def tracked_keyframes(obj: str, kind: str, n_frames: int, seed: int, config: Config) -> tuple[list[Keyframe],
+                                                                                                np.ndarray]:
+    """The tracker's keyframes over every frame of a simulated episode (gradient level), and
+    the true ``object_T_sensor`` of every frame ``(T, 4, 4)`` (index = ``video_index``)."""
+    from tactile_slam.sim.motions import make_motion
+    from tactile_slam.sim.objects import make_object
+    from tactile_slam.sim.renderer import GelRenderer
+    from tactile_slam.tracking.tracker import NormalFlowRegistrar, Tracker
+
+    renderer = GelRenderer(make_object(obj, seed=seed), config)
+    motion = make_motion(renderer, kind, n_frames, seed=seed)
+    builder = FrameBuilder(config)
+    tracker = Tracker(config.tracking, NormalFlowRegistrar(config.normalflow, config.tracking))
+    kfs: list[Keyframe] = []
+    for a in range(0, len(motion.object_T_sensor), 32):
+        idx = np.arange(a, min(a + 32, len(motion.object_T_sensor)))
+        maps = renderer.render(motion.object_T_sensor[idx])
+        frames = builder.from_gradients(maps.gradients, maps.contact, index=torch.as_tensor(idx))
+        for j in range(len(idx)):
+            kfs += _own(tracker.step(frames[j]).keyframes)
+    return kfs + _own(tracker.finish()), np.asarray(motion.object_T_sensor)
+
+
+def _own(kfs: list[Keyframe]) -> list[Keyframe]:
+    """Keyframes holding copies of their frames, not views that keep a render batch alive."""
+    for kf in kfs:
+        kf.frame = Frame.cat([kf.frame])
+    return kfs
+
+
+def true_revisits(kfs: list[Keyframe], obj_T: torch.Tensor, overlap: float, reach_m: float) -> set[tuple[int, int]]:
+    """Pairs ``(r, t)``, ``r < t`` (not ``t - 1`` of the same session), where at the true
+    relative pose at least ``overlap`` of ``r``'s contact lands in ``t``'s; only pairs whose
+    sensor origins are within ``reach_m`` are tested."""
+    pos = obj_T[:, :3, 3]
+    out = set()
+    for t in range(len(kfs)):
+        near = torch.nonzero(torch.linalg.vector_norm(pos[:t] - pos[t], dim=1) <= reach_m).flatten().tolist()
+        for r in near:
+            if r == t - 1 and kfs[r].session == kfs[t].session:
+                continue
+            if overlap_fraction(kfs[r], kfs[t], rigid_inverse(obj_T[t]) @ obj_T[r]) >= overlap:
+                out.add((r, t))
+    return out
+
+
+def score_backend(kfs: list[Keyframe], obj_T_frames: np.ndarray, config: Config,
+                  revisits: set[tuple[int, int]]) -> dict:
+    """Run the back end over tracked keyframes; score the loops in its final graph."""
+    from tactile_slam.backend import BackEnd
+
+    obj_T = torch.as_tensor(obj_T_frames, dtype=torch.float64)[[k.video_index for k in kfs]]
+    be = BackEnd(config)
+    times = []
+    for k in kfs:
+        t0 = time.perf_counter()
+        be.add(k)
+        times.append(time.perf_counter() - t0)
+    be.finish()
+    correct, wrong, hit = 0, [], set()
+    for lp in be.loops:
+        rot, trans = pose_error(lp.ref_T_tar[None], (rigid_inverse(obj_T[lp.ref_id]) @ obj_T[lp.tar_id])[None])
+        if float(rot) <= 1.0 and float(trans) <= 0.3:
+            correct += 1
+            hit.add(lp.tar_id)
+        else:
+            wrong.append({"ref": lp.ref_id, "tar": lp.tar_id, "rot_deg": float(rot), "trans_mm": float(trans),
+                          "ccs": lp.ccs, "inliers": lp.inliers})
+    queries = {t for _, t in revisits}
+    sizes = sorted((be.sessions.size(g) for g in be.sessions.groups), reverse=True)
+    return {"keyframes": len(kfs), "sessions": len({k.session for k in kfs}), "true_revisits": len(revisits),
+            "verified": be.detector.stats.loops, "accepted": len(be.loops), "correct": correct, "false": len(wrong),
+            "query_recall": len(hit & queries) / len(queries) if queries else None,
+            "groups": len(sizes), "largest_group": sizes[0] if sizes else 0, "summary": be.summary(),
+            "add_time": timing_stats(times), "false_loops": wrong[:20]}
 
 
 def overlap_fraction(ref: Keyframe, tar: Keyframe, tar_T_ref: torch.Tensor) -> float:
@@ -252,13 +340,30 @@ def run(args: argparse.Namespace) -> Path:
             a = r["accuracy"]
             print(f"backend {b}: extract {r['extract']['median_ms']:.1f} ms, {r['keypoints_median']} kp, "
                   f"false {a['false']}, pair recall {a['pair_recall']}", flush=True)
-    big = max(args.sizes)
-    kfs, obj_T = simulate_keyframes(args.timing_object, "long", max(10000, big * args.stride * 2), args.stride,
-                                    args.seed, config, max_keyframes=big)
-    results["detect_timing"] = timing_vs_size(kfs, obj_T, config, args.sizes, args.queries)
-    for n, r in results["detect_timing"].items():
-        print(f"map {n}: add+detect median {r['add_and_detect']['median_ms']:.1f} ms", flush=True)
-    results["index_timing"] = index_timing(kfs, config, args.index_sizes, args.seed)
-    for n, r in results["index_timing"].items():
-        print(f"index {n}: query median {r['query']['median_ms']:.2f} ms", flush=True)
+    results["backend"] = {}
+    for obj in args.backend_objects:
+        for kind in args.backend_kinds:
+            n = args.frames if kind == "tracking" else 3 * args.frames
+            kfs, obj_T = tracked_keyframes(obj, kind, n, args.seed, config)
+            kf_T = torch.as_tensor(obj_T, dtype=torch.float64)[[k.video_index for k in kfs]]
+            reach = math.hypot(*config.sensor.shape) * config.sensor.m_per_px
+            revisits = true_revisits(kfs, kf_T, args.overlap, reach)
+            for gate in (True, False):
+                cfg = replace(config, loop=replace(config.loop, consistency=gate))
+                key = f"{obj}/{kind}/{'gate' if gate else 'no_gate'}"
+                results["backend"][key] = r = score_backend(kfs, obj_T, cfg, revisits)
+                print(f"backend {key}: {r['keyframes']} kf / {r['sessions']} sessions, verified {r['verified']}, "
+                      f"accepted {r['accepted']}, false {r['false']}, query recall {r['query_recall']}, "
+                      f"groups {r['groups']} (largest {r['largest_group']}), gate {r['summary']['loop_gate']}",
+                      flush=True)
+    if args.sizes or args.index_sizes:
+        big = max(args.sizes or [100])  # index timing replicates these keyframes with noise
+        kfs, obj_T = simulate_keyframes(args.timing_object, "long", max(10000, big * args.stride * 2), args.stride,
+                                        args.seed, config, max_keyframes=big)
+        results["detect_timing"] = timing_vs_size(kfs, obj_T, config, args.sizes, args.queries)
+        for n, r in results["detect_timing"].items():
+            print(f"map {n}: add+detect median {r['add_and_detect']['median_ms']:.1f} ms", flush=True)
+        results["index_timing"] = index_timing(kfs, config, args.index_sizes, args.seed)
+        for n, r in results["index_timing"].items():
+            print(f"index {n}: query median {r['query']['median_ms']:.2f} ms", flush=True)
     return write_json(args.out, "loops", results)

@@ -1,0 +1,36 @@
+"""bench loops, back-end section: tracked keyframes through the back end, scored on the truth."""
+
+import json
+
+import torch
+
+from tactile_slam.bench import loops
+from tactile_slam.cli.main import main
+from tactile_slam.config import Config
+from tactile_slam.loop.detector import rigid_inverse
+
+
+def test_tracked_keyframes_carry_real_odometry():
+    config = Config()
+    kfs, obj_T = loops.tracked_keyframes("seed", "tracking", 90, 0, config)
+    assert len(kfs) >= 3 and obj_T.shape == (90, 4, 4)
+    assert [k.id for k in kfs] == list(range(len(kfs)))
+    T = torch.as_tensor(obj_T, dtype=torch.float64)
+    for prev, kf in zip(kfs, kfs[1:]):
+        if kf.session == prev.session:  # odometry of the tracker, close to the truth on the seed
+            true = rigid_inverse(T[prev.video_index]) @ T[kf.video_index]
+            assert float((kf.prev_T_kf[:3, 3] - true[:3, 3]).norm()) < 2e-4
+        assert kf.frame.gradients.shape[0] == 1 and kf.frame.gradients.is_contiguous()
+
+
+def test_backend_section_scores_gate_and_no_gate(tmp_path):
+    out = tmp_path / "loops.json"
+    assert main(["bench", "loops", "--out", str(out), "--objects", "--sizes", "--index-sizes",
+                 "--backend-objects", "seed", "--backend-kinds", "tracking", "--frames", "160"]) == 0
+    res = json.loads(out.read_text())["results"]["backend"]
+    assert set(res) == {"seed/tracking/gate", "seed/tracking/no_gate"}
+    for r in res.values():
+        assert r["accepted"] == r["correct"] + r["false"] and r["false"] == 0
+        assert r["accepted"] >= 1 and 0 < r["query_recall"] <= 1
+    gate = res["seed/tracking/gate"]["summary"]["loop_gate"]
+    assert gate is not None and res["seed/tracking/no_gate"]["summary"]["loop_gate"] is None
