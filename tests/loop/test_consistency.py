@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from tactile_slam.backend import BackEnd
 from tactile_slam.config import Config
 from tactile_slam.loop.consistency import (DriftModel, LoopGate, MotionGraph, Selection, consistent, discrepancy,
                                           motion_mm)
@@ -15,6 +16,8 @@ from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.sessions import SessionGroups
 from tactile_slam.posegraph.solver import solve
+from tactile_slam.tracking.keyframe import Keyframe
+from tests.registration.surfaces import Surface, frames
 
 MODEL = DriftModel(base_rot_deg=3.0, base_trans_mm=0.5, rot_deg_per_mm=0.1, trans_mm_per_mm=0.02, lever_mm=12.7)
 
@@ -252,7 +255,18 @@ def test_pending_loops_are_checked_once_their_groups_join(two_sessions):
 
 
 def test_backend_config_defaults_build_a_gate():
-    from tactile_slam.backend import BackEnd
-
     be = BackEnd(Config(), loop_mode=None)
     assert be.gate is not None and be.gate.model.lever_mm == pytest.approx(0.5 * math.hypot(320, 240) * 0.0634)
+
+
+def test_backend_does_not_merge_sessions_on_one_repetitive_texture_loop():
+    """The detector's periodic-texture trap (two identical touches 12 periods apart) in two
+    sessions: the pair verifies across groups, and the back end holds it instead of merging."""
+    surf = Surface(depth=0.6e-3, waves=[(25e-6, 1.0e-3, 0.0, 0.3), (25e-6, 1.0e-3, math.pi / 2, 1.1)])
+    fr = frames(surf, [torch.eye(4, dtype=torch.float64)])
+    be = BackEnd(Config())
+    for k in range(2):
+        be.add(Keyframe(k, k, fr[0], True, torch.eye(4, dtype=torch.float64)))
+    assert be.detector.stats.loops == 1  # verified: a local test cannot reject it
+    assert be.loops == [] and be.stats.merges == 0 and be.group[0] != be.group[1]
+    assert len(be.gate.pending) == 1 and be.summary()["loop_gate"]["pending"] == 1
