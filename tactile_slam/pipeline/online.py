@@ -279,7 +279,9 @@ def backend_worker(config: Config, loop_mode: str, inbox, outbox, skip_loops: bo
                     preview.add(kf, backend.start_T_kf[kf.id])
             if finish:
                 backend.finish()
-            if preview is not None and kfs and (finish or time.monotonic() - last_preview >= preview_every_s):
+            # at the end always (the finish message may arrive in a batch without keyframes)
+            if preview is not None and backend.keyframes and (
+                    finish or (kfs and time.monotonic() - last_preview >= preview_every_s)):
                 _write_preview(preview, backend, out)
                 last_preview = time.monotonic()
             if not finish:
