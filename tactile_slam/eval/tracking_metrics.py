@@ -110,15 +110,16 @@ def ate(est: np.ndarray, gt: np.ndarray, align: bool = False, frames: np.ndarray
     Returns:
         ``{"trans_rmse_mm", "rot_rms_deg", "n_frames"}``; with ``align`` the estimate is
         first moved by the SE(3) (Umeyama, no scale) that best fits its positions to the
-        ground truth.
+        ground truth. Errors are NaN when no frame is usable, or with ``align`` when
+        fewer than 3 are (the alignment is undefined), e.g. a run split into tiny groups.
     """
     est, gt = _pair(est, gt)
     use = valid_mask(est)
     if frames is not None:
         use &= np.asarray(frames, dtype=bool)
     e, g = est[use], gt[use]
-    if len(e) == 0:
-        return {"trans_rmse_mm": float("nan"), "rot_rms_deg": float("nan"), "n_frames": 0}
+    if len(e) == 0 or (align and len(e) < 3):
+        return {"trans_rmse_mm": float("nan"), "rot_rms_deg": float("nan"), "n_frames": int(len(e))}
     if align:
         e = umeyama(e[:, :3, 3], g[:, :3, 3]) @ e
     dt = np.linalg.norm(e[:, :3, 3] - g[:, :3, 3], axis=1) * 1000.0

@@ -84,6 +84,11 @@ def test_ate_unaligned_and_aligned():
     assert ate(est, gt, align=True)["trans_rmse_mm"] == pytest.approx(0.0, abs=1e-9)
     est[:, :3, :3] = rx(np.deg2rad(1.0))
     assert ate(est, gt)["rot_rms_deg"] == pytest.approx(1.0)
+    # two usable frames: unaligned ATE is defined, the alignment is not (NaN, not an error)
+    est[2:] = np.nan
+    assert ate(est, gt)["n_frames"] == 2 and np.isfinite(ate(est, gt)["trans_rmse_mm"])
+    two = ate(est, gt, align=True)
+    assert two["n_frames"] == 2 and np.isnan(two["trans_rmse_mm"]) and np.isnan(two["rot_rms_deg"])
 
 
 def test_rpe_frames_and_travel():
