@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import OrderedDict
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 
@@ -36,7 +37,7 @@ from tactile_slam.geometry.frame import Frame
 from tactile_slam.loop.features import Features, SiftSettings, curvature_features, image_features
 from tactile_slam.loop.matching import RansacSettings, match, similarity_to_se3
 from tactile_slam.loop.retrieval import DescriptorIndex, Footprint, IndexSettings, footprints, pose_gate
-from tactile_slam.registration.normalflow import prepare_reference, register_prepared
+from tactile_slam.registration.normalflow import PreparedReference, cat_prepared, prepare_reference, register_prepared
 from tactile_slam.registration.result import RegistrationResult
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -94,6 +95,7 @@ class DetectionStats:
     matched: int = 0
     candidates: int = 0
     verified: int = 0
+    prepared_reused: int = 0
     rejected_deviation: int = 0
     loops: int = 0
     time_features: float = 0.0
@@ -158,6 +160,7 @@ class LoopDetector:
         self._features: dict[int, Features] = {}
         self._footprints: dict[int, Footprint | None] = {}
         self._removed: set[int] = set()
+        self._prepared: OrderedDict[int, PreparedReference] = OrderedDict()  # most recently used last
         self.stats = DetectionStats()
 
     # ------------------------------------------------------------------ map
@@ -209,6 +212,7 @@ class LoopDetector:
         del self._features[kf_id]
         del self._footprints[kf_id]
         self.index.remove(kf_id)
+        self._prepared.pop(kf_id, None)
         self._removed.add(kf_id)
 
     # ------------------------------------------------------------------ detection
@@ -327,12 +331,28 @@ class LoopDetector:
         out = []
         for a in range(0, len(refs), step):
             chunk = refs[a:a + step]
-            prep = prepare_reference(Frame.cat([_check_keyframe(kf) for kf in chunk]), self.nf_config)
+            prep = cat_prepared([self._prepared_reference(kf) for kf in chunk])
             tar = repeat_frame(query.frame.to(prep.device), len(chunk))
             out.append(register_prepared(prep, tar, init_tar_T_ref[a:a + step].to(prep.device), self.nf_config))
         self.stats.verified += len(refs)
         self.stats.time_verification += time.perf_counter() - t0
         return RegistrationResult.cat(out)
+
+    def _prepared_reference(self, keyframe: Keyframe) -> PreparedReference:
+        """NormalFlow's per-reference work for a keyframe, kept for the ``loop.prepared_cache``
+        most recently verified keyframes (a candidate is usually verified again by the
+        next queries nearby)."""
+        prep = self._prepared.get(keyframe.id)
+        if prep is not None:
+            self._prepared.move_to_end(keyframe.id)
+            self.stats.prepared_reused += 1
+            return prep
+        prep = prepare_reference(_check_keyframe(keyframe), self.nf_config)
+        if self.config.loop.prepared_cache > 0:
+            self._prepared[keyframe.id] = prep
+            while len(self._prepared) > self.config.loop.prepared_cache:
+                self._prepared.popitem(last=False)
+        return prep
 
     def _verify_and_accept(self, query: Keyframe, cands: list[int], init: torch.Tensor, inliers: list[int],
                            keyframes: Mapping[int, Keyframe]) -> list[Loop]:

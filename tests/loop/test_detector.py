@@ -118,6 +118,28 @@ def test_batch_verification_equals_per_pair(scene):
     torch.testing.assert_close(chunked.tar_T_ref, batch.tar_T_ref, atol=1e-7, rtol=0)
 
 
+def test_prepared_references_are_reused_with_the_same_result(scene):
+    init = torch.stack([T_LOOP, EYE])
+    fresh = LoopDetector(replace(Config(), loop=replace(Config().loop, prepared_cache=0)))
+    det = _detector(scene)
+    first = det.verify(scene[2], [scene[0], scene[1]], init)
+    assert det.stats.prepared_reused == 0
+    again = det.verify(scene[2], [scene[1], scene[0]], init.flip(0))  # both cached now
+    assert det.stats.prepared_reused == 2
+    ref = fresh.verify(scene[2], [scene[1], scene[0]], init.flip(0))
+    assert fresh.stats.prepared_reused == 0
+    torch.testing.assert_close(again.tar_T_ref, ref.tar_T_ref, atol=1e-7, rtol=0)
+    torch.testing.assert_close(again.tar_T_ref.flip(0), first.tar_T_ref, atol=1e-7, rtol=0)
+    assert bool(again.ok[1]) and bool(first.ok[0])
+    det.remove(0)  # a removed keyframe leaves the cache
+    det.verify(scene[2], [scene[0]], init[:1])
+    assert det.stats.prepared_reused == 2
+    small = LoopDetector(replace(Config(), loop=replace(Config().loop, prepared_cache=1)))
+    for kf in (scene[0], scene[1], scene[0]):  # capacity 1: the oldest is evicted
+        small.verify(scene[2], [kf], init[:1])
+    assert small.stats.prepared_reused == 0
+
+
 def test_only_sift_mode_uses_lifted_estimate(scene):
     det = _detector(scene, mode="only_sift")
     loops = [lp for lp in det.detect(scene[2], [0, 1, 3], {}, {}, scene) if lp.ref_id == 0]
