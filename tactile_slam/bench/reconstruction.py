@@ -52,7 +52,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--objects", nargs="*", default=list(SIZES_MM), choices=sorted(SIZES_MM),
                         help="objects of the accuracy table (none: skip it)")
     parser.add_argument("--sizes", nargs="+", default=["small", "large"], choices=["small", "large"])
-    parser.add_argument("--frames", type=int, default=1500, help="simulated scan frames per object")
+    parser.add_argument("--frames", type=int, default=None,
+                        help="simulated scan frames per object (default: 1500 small, 3000 large)")
     parser.add_argument("--level", choices=["gradients", "image"], default="gradients",
                         help="simulated input: gradient maps, or video through the calibration model")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
@@ -127,7 +128,8 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
     size = SIZES_MM[name][0 if size_label == "small" else 1]
     ep, run_dir = work / f"{name}_{size_label}" / "episode", work / f"{name}_{size_label}" / "run"
     t0 = time.perf_counter()
-    simulate_episode(ep, SimulationSettings(object=name, kind="scan", seed=args.seed, frames=args.frames,
+    frames = args.frames or (1500 if size_label == "small" else 3000)
+    simulate_episode(ep, SimulationSettings(object=name, kind="scan", seed=args.seed, frames=frames,
                                             level=args.level, size_mm=size))
     t1 = time.perf_counter()
     keyframes, est, groups, run_stats = system_run(ep, run_dir, args.level, config)
@@ -140,7 +142,8 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
     for variant in args.variants:
         kfs, poses, object_T_start = variant_input(variant, keyframes, est, groups, episode.object_T_sensor)
         res = reconstruct(kfs, poses, config)
-        entry = {"object": name, "size": size_label, "size_mm": size, "level": args.level, "variant": variant,
+        entry = {"object": name, "size": size_label, "size_mm": size, "frames": frames, "level": args.level,
+                 "variant": variant,
                  "keyframes": len(kfs), "simulation_s": t1 - t0, "system_s": t2 - t1, "system": system,
                  "stats": res.stats}
         entry["mesh"] = recon_report(res.mesh.to_open3d(), gt_mesh, object_T_start, icp=True,
