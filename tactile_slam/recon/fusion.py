@@ -172,19 +172,11 @@ def fuse(
         raise ReconError(f"recon.fusion_gate_mm must be > 0, got {config.recon.fusion_gate_mm}")
     boxes = {t: contact_box(by_id[t].frame.contact[0].to(coverage.device)) for t in coverage.active}
     out = []
-    h, w = coverage.shape
     for t in coverage.active:
         mask = by_id[t].frame.contact[0].to(coverage.device)
-        # t's grid on its contact box plus a 1 px margin (all its points, row-major as in
-        # the full image; the margin gives the normals the same central differences)
-        c0, c1, r0, r1 = boxes[t].tolist()
-        rows, cols = slice(max(r0 - 1, 0), r1 + 2), slice(max(c0 - 1, 0), c1 + 2)
-        sub_mask = mask[rows, cols]
-        grid = point_map(by_id[t].frame.height[0, rows, cols].to(coverage.device, torch.float32)[None], s)[0]
-        grid[..., 0] += (cols.start + (grid.shape[1] - 1) / 2.0 - (w - 1) / 2.0) * s
-        grid[..., 1] += (rows.start + (grid.shape[0] - 1) / 2.0 - (h - 1) / 2.0) * s
-        p = grid[sub_mask]  # (N, 3)
-        w_t = coverage.weights(t)[rows, cols][sub_mask]
+        grid = point_map(by_id[t].frame.height.to(coverage.device, torch.float32), s)[0]  # (H, W, 3)
+        p = grid[mask]  # (N, 3)
+        w_t = coverage.weights(t)[mask]
         pose_t = coverage.pose(t)
         owned = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
         shift = torch.zeros_like(p)
@@ -205,8 +197,12 @@ def fuse(
             beats = (w_own > w_t[i]) | ((w_own == w_t[i]) & (n > t))
             owned[i[(w_own > 0) & near & beats]] = False
         p = p + shift / total.unsqueeze(1)
-        grid[sub_mask] = p
-        normals = (grid_normals(grid)[sub_mask].double() @ pose_t[:3, :3].T).float()
+        # normals on the contact box plus a 1 px margin: the same central differences
+        c0, c1, r0, r1 = boxes[t].tolist()
+        r0, c0 = max(r0 - 1, 0), max(c0 - 1, 0)
+        sub, sub_mask = grid[r0:r1 + 2, c0:c1 + 2].clone(), mask[r0:r1 + 2, c0:c1 + 2]
+        sub[sub_mask] = p
+        normals = (grid_normals(sub)[sub_mask].double() @ pose_t[:3, :3].T).float()
         points = (p.double() @ pose_t[:3, :3].T + pose_t[:3, 3]).float()
         out.append(FusedKeyframe(id=t, mask=mask, points=points, normals=normals, weights=w_t, owned=owned,
                                  outward=-pose_t[:3, 2].float()))
