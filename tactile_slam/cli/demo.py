@@ -99,7 +99,8 @@ def slam_demo(out: Path, obj: str, frames: int, seed: int) -> dict:
     mae = metrics["tracking"]["per_axis_mae"]
     return {"input_level": level, "episode": str(episode), "run": str(out / "run"),
             "stats": {k: result.stats.get(k) for k in ("frames", "contact_frames", "keyframes", "sessions",
-                                                        "loops", "groups", "frames_with_pose", "fps")},
+                                                        "loops", "groups", "frames_with_pose", "fps")}
+            | {"loops_pending": (result.stats.get("loop_gate") or {}).get("pending", 0)},
             "per_axis_mae": mae}
 
 
@@ -111,7 +112,8 @@ def run(args) -> int:
     (out / "summary.json").write_text(json.dumps(summary, indent=2))
     s, mae = summary["slam"]["stats"], summary["slam"]["per_axis_mae"]
     print(f"demo: simulated {s['frames']} frames of a {args.object} scan ({summary['slam']['input_level']} level), "
-          f"{s['sessions']} sessions, {s['keyframes']} keyframes, {s['loops']} loops -> {s['groups']} group(s)")
+          f"{s['sessions']} sessions, {s['keyframes']} keyframes, {s['loops']} loops "
+          f"({s['loops_pending']} verified but waiting for an agreeing loop) -> {s['groups']} group(s)")
     print("demo: per-axis MAE " + ", ".join(f"{k} {mae[k]:.3f}" for k in
                                             ("x_mm", "y_mm", "z_mm", "rx_deg", "ry_deg", "rz_deg")))
     print(f"demo: outputs in {out}/run (poses, mesh, report.png), geometry pictures in {out}/geometry")
