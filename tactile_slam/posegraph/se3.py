@@ -15,6 +15,8 @@ signature), which dominated incremental updates. pypose stays the reference (its
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import pypose as pp
 import torch
 
@@ -73,11 +75,7 @@ def from_pypose(X: pp.LieTensor) -> torch.Tensor:
 def inverse(T: torch.Tensor) -> torch.Tensor:
     """Inverse rigid transforms ``(..., 4, 4)``."""
     Rt = T[..., :3, :3].transpose(-1, -2)
-    out = torch.zeros_like(T)
-    out[..., :3, :3] = Rt
-    out[..., :3, 3] = -(Rt @ T[..., :3, 3:]).squeeze(-1)
-    out[..., 3, 3] = 1.0
-    return out
+    return torch.cat([torch.cat([Rt, -(Rt @ T[..., :3, 3:])], -1), T[..., 3:, :]], -2)
 
 
 def exp(xi: torch.Tensor) -> torch.Tensor:
@@ -112,7 +110,7 @@ def log(T: torch.Tensor) -> torch.Tensor:
     small = n < 1e-8
     scale = torch.where(small, 2.0 / w, 2.0 * torch.atan2(n, w) / torch.where(small, torch.ones_like(n), n))
     phi = v * scale
-    rho = (_so3_left_jacobian_inv(phi) @ T[..., :3, 3:]).squeeze(-1)
+    rho = _so3_left_jacobian_inv_apply(phi, T[..., :3, 3])
     return torch.cat([rho, phi], dim=-1)
 
 
@@ -130,6 +128,12 @@ _SHEPPERD = (
 )
 
 
+@lru_cache(maxsize=8)
+def _shepperd_map(dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """``(10, 16)`` constant: row vector ``[1, R.ravel()]`` times it gives the candidates."""
+    return torch.tensor(_SHEPPERD, dtype=dtype, device=device).T.contiguous()
+
+
 def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """Unit quaternions ``(..., 4)`` = ``[x, y, z, w]`` with ``w >= 0`` of rotations ``(..., 3, 3)``.
 
@@ -139,7 +143,7 @@ def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
     """
     lead = R.shape[:-2]
     v = torch.cat([torch.ones(lead + (1,), dtype=R.dtype, device=R.device), R.reshape(lead + (9,))], -1)
-    cand = (v @ torch.tensor(_SHEPPERD, dtype=R.dtype, device=R.device).T).reshape(lead + (4, 4))
+    cand = (v @ _shepperd_map(R.dtype, R.device)).reshape(lead + (4, 4))
     pivot = torch.diagonal(cand, dim1=-2, dim2=-1).argmax(-1)
     q = torch.gather(cand, -2, pivot[..., None, None].expand(pivot.shape + (1, 4))).squeeze(-2)
     q = q / q.norm(dim=-1, keepdim=True)
@@ -169,16 +173,27 @@ def adjoint(T: torch.Tensor) -> torch.Tensor:
     return A
 
 
-def _so3_left_jacobian_inv(phi: torch.Tensor) -> torch.Tensor:
-    K = skew(phi)
-    theta2 = (phi * phi).sum(-1)[..., None, None]
+def _so3_left_jacobian_inv_coeff(phi: torch.Tensor) -> torch.Tensor:
+    """``c`` in ``Jl^-1(phi) = I - K/2 + c K^2`` (``K = [phi]x``), series near 0. ``(..., 3)`` -> ``(..., 1)``."""
+    theta2 = (phi * phi).sum(-1, keepdim=True)
     theta = theta2.sqrt()
     small = theta < 1e-4
     safe = torch.where(small, torch.ones_like(theta), theta)
     big = (1.0 - safe * torch.cos(safe / 2) / (2 * torch.sin(safe / 2))) / (safe * safe)
-    c = torch.where(small, 1.0 / 12.0 + theta2 / 720.0, big)
+    return torch.where(small, 1.0 / 12.0 + theta2 / 720.0, big)
+
+
+def _so3_left_jacobian_inv(phi: torch.Tensor) -> torch.Tensor:
+    K = skew(phi)
+    c = _so3_left_jacobian_inv_coeff(phi)[..., None]
     eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
     return eye - 0.5 * K + c * (K @ K)
+
+
+def _so3_left_jacobian_inv_apply(phi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """``Jl^-1(phi) v`` by cross products (no 3x3 matrices). ``(..., 3)`` x2 -> ``(..., 3)``."""
+    pv = torch.linalg.cross(phi, v)
+    return v - 0.5 * pv + _so3_left_jacobian_inv_coeff(phi) * torch.linalg.cross(phi, pv)
 
 
 def _se3_q(rho: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
@@ -219,7 +234,7 @@ def between_error(Z: torch.Tensor, Ti: torch.Tensor, Tj: torch.Tensor) -> torch.
 
     ``Z`` ``(..., 4, 4)`` is the measured ``i_T_j``; ``Ti``, ``Tj`` are ``start_T_i``, ``start_T_j``.
     """
-    return log(inverse(Z) @ inverse(Ti) @ Tj)
+    return log(inverse(Ti @ Z) @ Tj)
 
 
 def between_jacobians(Z: torch.Tensor, Ti: torch.Tensor, Tj: torch.Tensor
