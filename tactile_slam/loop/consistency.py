@@ -33,6 +33,7 @@ from dataclasses import dataclass
 import torch
 
 from tactile_slam.posegraph import se3
+from tactile_slam.registration.result import pose_error
 
 
 @dataclass(frozen=True)
@@ -76,19 +77,11 @@ def motion_mm(a_T_b: torch.Tensor, lever_mm: float) -> torch.Tensor:
         torch.linalg.vector_norm(xi[..., 3:], dim=-1) * lever_mm
 
 
-def discrepancy(predicted: torch.Tensor, measured: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Rotation angle (deg) of ``predicted^-1 . measured`` and distance (mm) between the
-    translations of ``(B, 4, 4)`` relative poses ``r_T_t`` (metres: where each puts ``t`` in
-    ``r``'s frame). Returns two ``(B,)`` float64."""
-    d = se3.inverse(predicted.double()) @ measured.double()
-    cos = ((d[:, 0, 0] + d[:, 1, 1] + d[:, 2, 2] - 1.0) / 2.0).clamp(-1.0, 1.0)
-    return torch.rad2deg(torch.arccos(cos)), torch.linalg.vector_norm(predicted[:, :3, 3] - measured[:, :3, 3],
-                                                                      dim=-1).double() * 1e3
-
-
 def consistent(predicted: torch.Tensor, measured: torch.Tensor, path_mm: torch.Tensor,
                model: DriftModel) -> torch.Tensor:
-    """Whether measured relative poses agree with predicted ones within the drift tolerance.
+    """Whether measured relative poses agree with predicted ones within the drift tolerance
+    (rotation angle of ``predicted^-1 measured`` and distance between the translations,
+    :func:`~tactile_slam.registration.result.pose_error`).
 
     Args:
         predicted, measured: ``(B, 4, 4)`` float64 ``r_T_t`` (metres).
@@ -98,7 +91,7 @@ def consistent(predicted: torch.Tensor, measured: torch.Tensor, path_mm: torch.T
     Returns:
         ``(B,)`` bool.
     """
-    rot, trans = discrepancy(predicted, measured)
+    rot, trans = pose_error(predicted, measured)
     path = path_mm.double()
     rot_tol, trans_tol = model.tolerance(path)
     return torch.isfinite(path) & (rot <= rot_tol) & (trans <= trans_tol)

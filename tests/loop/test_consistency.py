@@ -9,13 +9,13 @@ import torch
 
 from tactile_slam.backend import BackEnd
 from tactile_slam.config import Config
-from tactile_slam.loop.consistency import (DriftModel, LoopGate, MotionGraph, Selection, consistent, discrepancy,
-                                          motion_mm)
+from tactile_slam.loop.consistency import DriftModel, LoopGate, MotionGraph, Selection, consistent, motion_mm
 from tactile_slam.loop.detector import Loop
 from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.sessions import SessionGroups
 from tactile_slam.posegraph.solver import solve
+from tactile_slam.registration.result import pose_error
 from tactile_slam.tracking.keyframe import Keyframe
 from tests.registration.surfaces import Surface, frames
 
@@ -82,7 +82,7 @@ def test_discrepancy_and_tolerance_grow_with_path():
     a = pose((0, 0, 1), 10.0, (1.0, 2.0, 0.0))
     b = a @ pose((0, 0, 1), 4.0, (0.0, 0.0, 0.0))
     b[:3, 3] += torch.tensor([1.0e-3, 0.0, 0.0], dtype=torch.float64)
-    rot, trans = discrepancy(a[None], b[None])
+    rot, trans = pose_error(a[None], b[None])
     assert float(rot) == pytest.approx(4.0) and float(trans) == pytest.approx(1.0)
     # 4 deg / 1 mm off: beyond the base tolerance (3 deg, 0.5 mm), within it after 25 mm of
     # path; an unknown (infinite) path never passes
@@ -135,7 +135,7 @@ def test_symmetric_false_loop_rejected_true_loop_with_drift_accepted():
     true_loop = loop(0, t, se3.inverse(true[0]) @ true[t])
     false_loop = loop(4, t, symmetric_false(true, 4, t))
     # the drifted estimate really is off: a fixed tolerance of the base alone would reject the true loop
-    rot, trans = discrepancy((se3.inverse(est[0]) @ est[t])[None], true_loop.ref_T_tar[None])
+    rot, trans = pose_error((se3.inverse(est[0]) @ est[t])[None], true_loop.ref_T_tar[None])
     assert float(rot) > 1.0 and float(trans) > MODEL.base_trans_mm
     sel = gate.select(t, [true_loop, false_loop], lambda k: 0, lambda k: est[k])
     assert sel.accepted == [true_loop] and sel.merges == []
@@ -225,7 +225,7 @@ def test_two_agreeing_inter_group_loops_merge_with_correct_poses(two_sessions):
     assert gate.select(20, [], groups.group_of, graph.pose).accepted == [] and gate.pending == []
     assert gate.stats.rejected_consistency == 1
     est = graph.poses()
-    rot, trans = discrepancy(se3.inverse(est[0]) @ est, true)  # true: start = keyframe 0
+    rot, trans = pose_error(se3.inverse(est[0]) @ est, true)  # true: start = keyframe 0
     assert float(rot.max()) < 1e-6 and float(trans.max()) < 1e-6
 
 
