@@ -31,7 +31,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -60,40 +60,22 @@ class BackEndStats:
     time_coverage: list[float] = field(default_factory=list)
 
 
-class _GroupView(Mapping):
-    """Keyframe id -> group id, read from the union-find on access (no copy)."""
+class _KeyframeView(Mapping):
+    """Keyframe id -> ``lookup(id)`` for the back end's keyframes, read on access (no copy)."""
 
-    def __init__(self, backend: BackEnd) -> None:
-        self._b = backend
+    def __init__(self, keyframes: Mapping, lookup: Callable) -> None:
+        self._keyframes, self._lookup = keyframes, lookup
 
-    def __getitem__(self, kf_id: int) -> int:
-        if kf_id not in self._b.keyframes:
+    def __getitem__(self, kf_id: int):
+        if kf_id not in self._keyframes:
             raise KeyError(kf_id)
-        return self._b.sessions.group_of(kf_id)
+        return self._lookup(kf_id)
 
     def __iter__(self) -> Iterator[int]:
-        return iter(self._b.keyframes)
+        return iter(self._keyframes)
 
     def __len__(self) -> int:
-        return len(self._b.keyframes)
-
-
-class _PoseView(Mapping):
-    """Keyframe id -> ``(4, 4)`` float64 ``start_T_kf``, read from the graph on access."""
-
-    def __init__(self, backend: BackEnd) -> None:
-        self._b = backend
-
-    def __getitem__(self, kf_id: int) -> torch.Tensor:
-        if kf_id not in self._b.keyframes:
-            raise KeyError(kf_id)
-        return self._b.graph.pose(kf_id)
-
-    def __iter__(self) -> Iterator[int]:
-        return iter(self._b.keyframes)
-
-    def __len__(self) -> int:
-        return len(self._b.keyframes)
+        return len(self._keyframes)
 
 
 def drift_model(config: Config) -> DriftModel:
@@ -127,8 +109,8 @@ class BackEnd:
         self.gate = (LoopGate(drift_model(config), config.loop.merge_min_pairs, config.loop.doubt_factor)
                      if config.loop.consistency else None)
         self._last_in_session: dict[int, int] = {}
-        self._group_view = _GroupView(self)
-        self._pose_view = _PoseView(self)
+        self._group_view = _KeyframeView(self.keyframes, self.sessions.group_of)  # -> group id
+        self._pose_view = _KeyframeView(self.keyframes, self.graph.pose)  # -> (4, 4) start_T_kf
 
     @property
     def group(self) -> Mapping[int, int]:
