@@ -62,8 +62,9 @@ class PreparedReference:
     """Per-reference quantities, computed once and reused for every target.
 
     Attributes:
-        points: ``(B, K, 3)`` sample points P_k, metres, reference sensor frame.
-        points_t: ``(B, 3, K)`` the same, channels first.
+        points_t: ``(B, 3, K)`` sample points P_k, metres, reference sensor frame,
+            channels first (the layout the warp's product wants); :attr:`points` is the
+            ``(B, K, 3)`` view.
         curvature: ``(B, K)`` reference curvature L_ref,k (1/px).
         spread: ``(B,)`` float64 RMS distance of the samples from their centroid (m),
             scaling translations in the degeneracy test.
@@ -73,7 +74,6 @@ class PreparedReference:
         m_per_px: metres per pixel.
     """
 
-    points: torch.Tensor
     points_t: torch.Tensor
     curvature: torch.Tensor
     spread: torch.Tensor
@@ -83,15 +83,20 @@ class PreparedReference:
     m_per_px: float
 
     def __len__(self) -> int:
-        return self.points.shape[0]
+        return self.points_t.shape[0]
+
+    @property
+    def points(self) -> torch.Tensor:
+        """``(B, K, 3)`` view of :attr:`points_t`."""
+        return self.points_t.mT
 
     @property
     def dtype(self) -> torch.dtype:
-        return self.points.dtype
+        return self.points_t.dtype
 
     @property
     def device(self) -> torch.device:
-        return self.points.device
+        return self.points_t.device
 
 
 def _check_finite(frame: Frame, what: str) -> None:
@@ -187,7 +192,7 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     levels = [_coarse_level(normals_map, points, valid, s, f, config.jacobian)
               for f in sorted(config.coarse_factors, reverse=True)]
     levels.append(_level(points, normals, sobel_at(normals_map, idx) / s, valid, 1, config.jacobian))
-    return PreparedReference(points, points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s)
+    return PreparedReference(points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s)
 
 
 def cat_prepared(preps: Sequence[PreparedReference]) -> PreparedReference:
@@ -217,7 +222,7 @@ def cat_prepared(preps: Sequence[PreparedReference]) -> PreparedReference:
                     cat(lambda p, i=i: p.levels[i].jtj, 1),
                     torch.cat([p.levels[i].ata_full for p in preps]), lv.factor)
               for i, lv in enumerate(first.levels)]
-    return PreparedReference(cat(lambda p: p.points, 1), cat(lambda p: p.points_t, 2), cat(lambda p: p.curvature, 1),
+    return PreparedReference(cat(lambda p: p.points_t, 2), cat(lambda p: p.curvature, 1),
                              torch.cat([p.spread for p in preps]), cat(lambda p: p.valid, 1), levels, first.shape,
                              first.m_per_px)
 
