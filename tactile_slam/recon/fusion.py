@@ -111,40 +111,6 @@ def project_into_box(n_T_t: torch.Tensor, points: torch.Tensor, box: torch.Tenso
     return i, torch.stack([col[i], row[i]], dim=1)
 
 
-def sample_maps(height: torch.Tensor, weight: torch.Tensor,
-                cr: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Read a height map bilinearly and a weight map bilinearly and at the nearest
-    pixel, at fractional pixel positions; 0 outside the image.
-
-    Args:
-        height, weight: ``(H, W)`` maps.
-        cr: ``(M, 2)`` float ``(col, row)``.
-
-    Returns:
-        ``(M,)`` bilinear height, ``(M,)`` bilinear weight (corners outside the image
-        read 0) and ``(M,)`` weight at the nearest pixel (ties round half to even).
-    """
-    h, w = height.shape
-    flat_h, flat_w = height.reshape(-1), weight.reshape(-1)
-
-    def index(row: torch.Tensor, col: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        return row.clamp(0, h - 1) * w + col.clamp(0, w - 1), inside
-
-    c0, r0 = torch.floor(cr[:, 0]), torch.floor(cr[:, 1])
-    fc, fr = cr[:, 0] - c0, cr[:, 1] - r0
-    c0, r0 = c0.long(), r0.long()
-    h_bil = torch.zeros_like(fc)
-    w_bil = torch.zeros_like(fc)
-    for dr, dc, wt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
-        idx, inside = index(r0 + dr, c0 + dc)
-        wt = wt * inside
-        h_bil += flat_h.take(idx) * wt
-        w_bil += flat_w.take(idx) * wt
-    idx, inside = index(torch.round(cr[:, 1]).long(), torch.round(cr[:, 0]).long())
-    return h_bil, w_bil, flat_w.take(idx) * inside
-
-
 def fuse(
     keyframes: Sequence[Keyframe],
     start_T_kf: torch.Tensor,
@@ -185,8 +151,8 @@ def fuse(
             n_T_t = torch.linalg.solve(coverage.pose(n), pose_t)
             # only t's points that reach n's contact can read a non-zero weight
             i, cr = project_into_box(n_T_t, p, boxes[n], s, coverage.shape)
-            h_n, w_n, w_own = sample_maps(by_id[n].frame.height[0].to(coverage.device, torch.float32),
-                                          coverage.weights(n), cr)
+            h_n, w_n, w_own = (coverage.lookup([n], cr[None], heights=hts, bilinear=bil)[0]
+                               for hts, bil in ((True, True), (False, True), (False, False)))
             slide = h_n * s - (p[i] @ n_T_t[2, :3].to(p.dtype) + n_T_t[2, 3])  # along n's z axis
             near = slide.abs() <= gate
             w_n = w_n * near

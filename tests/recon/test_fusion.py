@@ -12,7 +12,8 @@ from tests.recon.recon_oracle import sphere_keyframes
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.recon import ReconError, fuse, merge_surfaces
-from tactile_slam.recon.fusion import contact_box, grid_normals, project_into_box, sample_maps
+from tactile_slam.loop.coverage import lookup
+from tactile_slam.recon.fusion import contact_box, grid_normals, project_into_box
 from tactile_slam.recon.mesh import grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -144,15 +145,23 @@ def test_fused_sphere_points_lie_on_sphere():
     assert np.median(inner) > 0.99  # outward normals
 
 
-def test_sample_maps_match_scipy_interpolation():
-    """Bilinear reads with zeros outside the image (scipy's grid-constant mode) and the
-    nearest pixel's weight, at positions inside, on and beyond the border."""
+def _read(maps: torch.Tensor, cr: torch.Tensor, bilinear: bool) -> torch.Tensor:
+    """``coverage.lookup`` on one ``(H, W)`` map at ``(N, 2)`` positions -> ``(N,)``."""
+    return lookup(maps.reshape(1, -1), torch.zeros(1, dtype=torch.int64), cr[None], tuple(maps.shape), bilinear)[0]
+
+
+def test_map_reads_match_scipy_interpolation():
+    """The reads fusion uses (``coverage.lookup``): bilinear with zeros outside the image
+    (scipy's grid-constant mode) and the nearest pixel's weight, at positions inside, on
+    and beyond the border."""
     from scipy.ndimage import map_coordinates
 
     rng = np.random.default_rng(1)
     height, weight = rng.normal(size=(2, 7, 9))
     cr = np.concatenate([rng.uniform(-2, 10, size=(300, 2)), [[0, 0], [8, 6], [8.4, 6.4], [-0.6, 3.2]]])
-    h_bil, w_bil, w_near = sample_maps(torch.from_numpy(height), torch.from_numpy(weight), torch.from_numpy(cr))
+    h_bil = _read(torch.from_numpy(height), torch.from_numpy(cr), True)
+    w_bil = _read(torch.from_numpy(weight), torch.from_numpy(cr), True)
+    w_near = _read(torch.from_numpy(weight), torch.from_numpy(cr), False)
     coords = cr[:, ::-1].T  # (row, col)
     np.testing.assert_allclose(h_bil, map_coordinates(height, coords, order=1, mode="grid-constant"), atol=1e-12)
     np.testing.assert_allclose(w_bil, map_coordinates(weight, coords, order=1, mode="grid-constant"), atol=1e-12)
@@ -178,7 +187,7 @@ def test_box_projection_keeps_every_point_that_can_read_the_box():
     moved = pts @ n_T_t[:3, :3].T + n_T_t[:3, 3]
     all_cr = torch.stack([moved[:, 0] / S + (W - 1) / 2, moved[:, 1] / S + (H - 1) / 2], 1)
     torch.testing.assert_close(cr, all_cr[i])
-    _, w_bil, w_near = sample_maps(weight, weight, all_cr)
+    w_bil, w_near = _read(weight, all_cr, True), _read(weight, all_cr, False)
     dropped = torch.ones(len(pts), dtype=torch.bool)
     dropped[i] = False
     assert 0 < len(i) < len(pts)
