@@ -6,7 +6,7 @@ import json
 import os
 import platform
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -69,3 +69,27 @@ def write_json(path: str | Path, name: str, results: dict[str, Any]) -> Path:
            "results": results}
     path.write_text(json.dumps(doc, indent=2))
     return path
+
+
+def rendered_frames(renderer, builder, object_T_sensor: np.ndarray, index: np.ndarray | None = None,
+                    batch: int = 32) -> Iterator:
+    """Gradient-level frames of simulated sensor poses, rendered ``batch`` at a time.
+
+    Args:
+        renderer: a :class:`~tactile_slam.sim.renderer.GelRenderer`.
+        builder: a :class:`~tactile_slam.geometry.frame.FrameBuilder`.
+        object_T_sensor: ``(N, 4, 4)`` poses, metres.
+        index: ``(N,)`` video indices stored in the frames (default ``0..N-1``).
+
+    Yields:
+        one single-image :class:`~tactile_slam.geometry.frame.Frame` per pose, owning its
+        memory (a slice of a batch would keep the whole render batch alive).
+    """
+    from tactile_slam.geometry.frame import Frame
+
+    index = np.arange(len(object_T_sensor)) if index is None else np.asarray(index)
+    for a in range(0, len(object_T_sensor), batch):
+        maps = renderer.render(object_T_sensor[a:a + batch])
+        frames = builder.from_gradients(maps.gradients, maps.contact, index=torch.as_tensor(index[a:a + batch]))
+        for j in range(len(frames)):
+            yield Frame.cat([frames[j]])

@@ -38,9 +38,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile_slam.bench.common import timing_stats, write_json
+from tactile_slam.bench.common import rendered_frames, timing_stats, write_json
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import Frame, FrameBuilder
+from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import LoopDetector, rigid_inverse
 from tactile_slam.loop.retrieval import DescriptorIndex, IndexSettings
@@ -84,19 +84,14 @@ def simulate_keyframes(obj: str, kind: str, n_frames: int, stride: int, seed: in
     pick = np.flatnonzero(np.arange(len(pressed)) % stride == 0)
     if max_keyframes is not None:
         pick = pick[:max_keyframes]
-    builder = FrameBuilder(config)
+    idx = pressed[pick]
     kfs, poses = [], []
-    for a in range(0, len(pick), 32):
-        idx = pressed[pick[a:a + 32]]
-        maps = renderer.render(motion.object_T_sensor[idx])
-        frames = builder.from_gradients(maps.gradients, maps.contact, index=torch.as_tensor(idx))
-        for j in range(len(idx)):
-            if not bool(frames.in_contact[j]):
-                continue
-            i = len(kfs)
-            sess = int(session[pick[a + j]])
-            kfs.append(Keyframe(i, sess, frames[j], not kfs or kfs[-1].session != sess, EYE.clone()))
-            poses.append(motion.object_T_sensor[idx[j]])
+    for j, frame in enumerate(rendered_frames(renderer, FrameBuilder(config), motion.object_T_sensor[idx], idx)):
+        if not bool(frame.in_contact[0]):
+            continue
+        sess = int(session[pick[j]])
+        kfs.append(Keyframe(len(kfs), sess, frame, not kfs or kfs[-1].session != sess, EYE.clone()))
+        poses.append(motion.object_T_sensor[idx[j]])
     return kfs, np.asarray(poses)
 
 
@@ -111,23 +106,11 @@ def tracked_keyframes(obj: str, kind: str, n_frames: int, seed: int, config: Con
 
     renderer = GelRenderer(make_object(obj, seed=seed), config)
     motion = make_motion(renderer, kind, n_frames, seed=seed)
-    builder = FrameBuilder(config)
     tracker = Tracker(config.tracking, NormalFlowRegistrar(config.normalflow, config.tracking))
     kfs: list[Keyframe] = []
-    for a in range(0, len(motion.object_T_sensor), 32):
-        idx = np.arange(a, min(a + 32, len(motion.object_T_sensor)))
-        maps = renderer.render(motion.object_T_sensor[idx])
-        frames = builder.from_gradients(maps.gradients, maps.contact, index=torch.as_tensor(idx))
-        for j in range(len(idx)):
-            kfs += _own(tracker.step(frames[j]).keyframes)
-    return kfs + _own(tracker.finish()), np.asarray(motion.object_T_sensor)
-
-
-def _own(kfs: list[Keyframe]) -> list[Keyframe]:
-    """Keyframes holding copies of their frames, not views that keep a render batch alive."""
-    for kf in kfs:
-        kf.frame = Frame.cat([kf.frame])
-    return kfs
+    for frame in rendered_frames(renderer, FrameBuilder(config), motion.object_T_sensor):
+        kfs += tracker.step(frame).keyframes
+    return kfs + tracker.finish(), np.asarray(motion.object_T_sensor)
 
 
 def true_revisits(kfs: list[Keyframe], obj_T: torch.Tensor, overlap: float, reach_m: float) -> set[tuple[int, int]]:

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile_slam.bench.common import write_json
+from tactile_slam.bench.common import rendered_frames, write_json
 from tactile_slam.config import Config
 from tactile_slam.eval.recon_metrics import recon_report, surface_metrics, touch_poses
 from tactile_slam.geometry.frame import FrameBuilder
@@ -102,16 +102,12 @@ def timing_run(n_touches: int, seed: int, config: Config) -> dict:
     gt = make_object("lime", 120.0, seed)
     renderer = GelRenderer(gt, config)
     o_T_s = touch_poses(gt, n_touches, depth_mm=0.3, seed=seed, config=config, renderer=renderer)
-    builder = FrameBuilder(config)
     kfs, poses = [], []
-    for a in range(0, len(o_T_s), 32):
-        maps = renderer.render(o_T_s[a:a + 32])
-        for j in range(len(maps.contact)):
-            if bool(maps.contact[j].any()):  # clone: a slice would keep the whole batch alive
-                frame = builder.from_gradients(maps.gradients[j:j + 1].clone(), contact=maps.contact[j:j + 1].clone())
-                kfs.append(Keyframe(id=len(kfs), session=0, frame=frame, new_session=not kfs,
-                                    prev_T_kf=torch.eye(4, dtype=torch.float64)))
-                poses.append(o_T_s[a + j])
+    for pose, frame in zip(o_T_s, rendered_frames(renderer, FrameBuilder(config), o_T_s)):
+        if bool(frame.contact.any()):
+            kfs.append(Keyframe(id=len(kfs), session=0, frame=frame, new_session=not kfs,
+                                prev_T_kf=torch.eye(4, dtype=torch.float64)))
+            poses.append(pose)
     o_T_s = np.stack(poses)
     t0 = time.perf_counter()
     res = reconstruct(kfs, torch.from_numpy(np.linalg.inv(o_T_s[0]) @ o_T_s), config)
