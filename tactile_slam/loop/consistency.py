@@ -52,6 +52,11 @@ class DriftModel:
     trans_mm_per_mm: float
     lever_mm: float
 
+    def __post_init__(self) -> None:
+        values = (self.base_rot_deg, self.base_trans_mm, self.rot_deg_per_mm, self.trans_mm_per_mm, self.lever_mm)
+        if not all(math.isfinite(v) and v >= 0 for v in values):
+            raise ValueError(f"drift tolerances and the lever must be finite and >= 0, got {values}")
+
     def tolerance(self, path_mm: float | torch.Tensor) -> tuple:
         """``(rotation deg, translation mm)`` tolerance after ``path_mm`` of drift path."""
         return self.base_rot_deg + self.rot_deg_per_mm * path_mm, self.base_trans_mm + self.trans_mm_per_mm * path_mm

@@ -148,8 +148,9 @@ class LoopDetector:
         self.mode = mode or lc.mode
         if self.mode not in MODES:
             raise LoopError(f"loop mode must be one of {MODES}, got {self.mode!r}")
-        if lc.min_sift_inliers < 3 or lc.max_candidates < 1 or lc.verify_batch < 1:
-            raise LoopError("loop.min_sift_inliers must be >= 3, max_candidates and verify_batch >= 1")
+        if lc.min_sift_inliers < 3 or lc.max_candidates < 1 or lc.verify_batch < 1 or lc.prepared_cache < 0:
+            raise LoopError("loop.min_sift_inliers must be >= 3, max_candidates and verify_batch >= 1, "
+                            "prepared_cache >= 0")
         self.sift = SiftSettings(lc.sift_backend, lc.sift_contrast_threshold, lc.sift_octave_layers,
                                  lc.sift_max_features, config.final_erode_px)
         self.ransac = RansacSettings(lc.min_sift_inliers, lc.ransac_iterations, lc.ransac_threshold_px,

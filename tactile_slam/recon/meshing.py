@@ -72,6 +72,8 @@ def voxel_average(
     Returns:
         ``(M, 3)`` points, ``(M, 3)`` unit normals, the voxel size used.
     """
+    if max_points is not None and max_points < 1:
+        raise ReconError(f"recon.poisson_max_points must be >= 1 (or None for no budget), got {max_points}")
     ones = torch.ones_like(points[:, :1])
     sums = voxel_sums(points, torch.cat([points, normals, ones], dim=1), voxel)
     factor = 1

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
@@ -270,3 +271,17 @@ def test_backend_does_not_merge_sessions_on_one_repetitive_texture_loop():
     assert be.detector.stats.loops == 1  # verified: a local test cannot reject it
     assert be.loops == [] and be.stats.merges == 0 and be.group[0] != be.group[1]
     assert len(be.gate.pending) == 1 and be.summary()["loop_gate"]["pending"] == 1
+
+
+def test_bad_gate_settings_are_refused():
+    for bad in (dict(base_rot_deg=-1.0), dict(trans_mm_per_mm=float("nan")), dict(lever_mm=float("inf"))):
+        kw = dict(base_rot_deg=3.0, base_trans_mm=0.5, rot_deg_per_mm=0.1, trans_mm_per_mm=0.02, lever_mm=12.7) | bad
+        with pytest.raises(ValueError, match="drift tolerances"):
+            DriftModel(**kw)
+    with pytest.raises(ValueError, match="min_pairs"):
+        LoopGate(MODEL, min_pairs=0)
+    with pytest.raises(ValueError, match="doubt_factor"):
+        LoopGate(MODEL, doubt_factor=0.5)
+    cfg = Config()
+    with pytest.raises(ValueError, match="drift tolerances"):
+        BackEnd(replace(cfg, loop=replace(cfg.loop, drift_base_trans_mm=-0.1)))

@@ -168,6 +168,8 @@ def test_image_sift_needs_images(scene):
 def test_bad_configuration_and_input(scene):
     with pytest.raises(LoopError, match="mode"):
         LoopDetector(Config(), mode="fast")
+    with pytest.raises(LoopError, match="prepared_cache"):
+        LoopDetector(replace(Config(), loop=replace(Config().loop, prepared_cache=-1)))
     det = _detector(scene, ids=(0,))
     with pytest.raises(LoopError, match="never added"):
         det.detect(scene[2], [1], {}, {}, scene)

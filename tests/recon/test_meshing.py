@@ -76,6 +76,14 @@ def test_poisson_sphere_is_watertight_and_accurate():
     assert float((mesh.normals * mesh.vertices).sum(1).min()) > 0
 
 
+def test_point_budget_must_be_positive():
+    p = torch.rand(100, 3, dtype=torch.float64)
+    n = torch.nn.functional.normalize(torch.rand(100, 3, dtype=torch.float64), dim=1)
+    for bad in (0, -5):
+        with pytest.raises(ReconError, match="poisson_max_points"):
+            voxel_average(p, n, 0.05, max_points=bad)
+
+
 def test_point_budget_coarsens_voxel_and_cell_together():
     """Over the budget the voxel and the Poisson cell grow by the same factor (a lower
     depth); the coarse surface still lies on the sphere to within a fraction of a cell."""
