@@ -159,6 +159,7 @@ class LoopDetector:
         self.index = DescriptorIndex(IndexSettings(lc.retrieval_neighbours, lc.retrieval_min_votes,
                                                    lc.retrieval_exact_max))
         self._features: dict[int, Features] = {}
+        self._matchable: set[int] = set()  # ids with at least min_sift_inliers keypoints
         self._footprints: dict[int, Footprint | None] = {}
         self._removed: set[int] = set()
         self._prepared: OrderedDict[int, PreparedReference] = OrderedDict()  # most recently used last
@@ -201,6 +202,8 @@ class LoopDetector:
             raise LoopError(f"keyframe {keyframe.id} was already added")
         feats = self.extract(keyframe)
         self._features[keyframe.id] = feats
+        if len(feats) >= self.ransac.min_inliers:
+            self._matchable.add(keyframe.id)
         self.index.add(keyframe.id, feats.descriptors)
         self._footprints[keyframe.id] = footprints(keyframe.frame.height, keyframe.frame.contact,
                                                    keyframe.frame.mm_per_px / 1000.0)[0]
@@ -211,6 +214,7 @@ class LoopDetector:
         if kf_id not in self._features:
             raise LoopError(f"keyframe {kf_id} is not in the loop detector")
         del self._features[kf_id]
+        self._matchable.discard(kf_id)
         del self._footprints[kf_id]
         self.index.remove(kf_id)
         self._prepared.pop(kf_id, None)
@@ -250,7 +254,7 @@ class LoopDetector:
         if len(q_feats) < self.ransac.min_inliers:
             return []
         t0 = time.perf_counter()
-        cands = [r for r in cands if len(self._features[r]) >= self.ransac.min_inliers]
+        cands = [r for r in cands if r in self._matchable]
         if len(cands) > self.config.loop.max_candidates:
             cands = sorted(self.index.query(q_feats.descriptors, cands, self.config.loop.max_candidates))
         t1 = time.perf_counter()

@@ -64,16 +64,18 @@ def footprints(height: torch.Tensor, contact: torch.Tensor, m_per_px: float) -> 
     if height.ndim != 3 or tuple(contact.shape) != tuple(height.shape):
         raise RetrievalError(f"height and contact must be matching (B, H, W), got {tuple(height.shape)} "
                              f"and {tuple(contact.shape)}")
-    b, h, w = height.shape
-    r = (torch.arange(h, dtype=torch.float64, device=height.device) - (h - 1) / 2.0)[:, None].expand(h, w)
-    c = (torch.arange(w, dtype=torch.float64, device=height.device) - (w - 1) / 2.0)[None, :].expand(h, w)
-    pts = torch.stack([c.expand(b, h, w), r.expand(b, h, w), height.double()], -1) * m_per_px  # (B, H, W, 3)
-    m = contact.double()[..., None]
-    n = m.sum((1, 2, 3))
-    centre = (pts * m).sum((1, 2)) / n.clamp_min(1.0)[:, None]
-    dist = torch.linalg.vector_norm(pts - centre[:, None, None], dim=-1) * contact
-    radius = dist.amax((1, 2))
-    return [Footprint(centre[i].cpu(), float(radius[i])) if n[i] > 0 else None for i in range(b)]
+    _, h, w = height.shape
+    out: list[Footprint | None] = []
+    for hk, ck in zip(height, contact):  # contact pixels only: ~10x less work than full maps
+        rows, cols = torch.nonzero(ck, as_tuple=True)
+        if rows.numel() == 0:
+            out.append(None)
+            continue
+        pts = torch.stack([cols.double() - (w - 1) / 2.0, rows.double() - (h - 1) / 2.0, hk[rows, cols].double()],
+                          1) * m_per_px
+        centre = pts.mean(0)
+        out.append(Footprint(centre.cpu(), float(torch.linalg.vector_norm(pts - centre, dim=1).max())))
+    return out
 
 
 def pose_gate(query: Footprint, start_T_query: torch.Tensor, refs: list[Footprint],

@@ -81,11 +81,11 @@ def test_footprint_matches_independent_computation():
     height = torch.zeros(2, h, w)
     contact = torch.zeros(2, h, w, dtype=torch.bool)
     contact[0, 10:20, 5:30] = True
-    height[0] = -2.0
+    height[0] = -2.0 - torch.rand(h, w, generator=torch.Generator().manual_seed(0))
     fps = footprints(height, contact, s)
     assert fps[1] is None
     r, c = np.nonzero(contact[0].numpy())
-    pts = np.c_[(c - (w - 1) / 2) * s, (r - (h - 1) / 2) * s, np.full(len(r), -2.0 * s)]
+    pts = np.c_[(c - (w - 1) / 2) * s, (r - (h - 1) / 2) * s, height[0].double().numpy()[r, c] * s]
     centre = pts.mean(0)
     np.testing.assert_allclose(fps[0].centre.numpy(), centre, atol=1e-12)
     assert math.isclose(fps[0].radius, np.linalg.norm(pts - centre, axis=1).max(), rel_tol=1e-9)
