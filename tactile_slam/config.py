@@ -146,6 +146,11 @@ class TrackingConfig:
     scr_threshold: float = 0.3
     flush_session_tail: bool = True
     init: str = "constant_position"
+    # motion continuity (docs/registration.md, "Tracking"): a registration against an older
+    # keyframe that implies a faster sensor motion since the previous frame than this is a
+    # failure (a slip to a wrong alignment that CCS/SCR cannot see); None disables each
+    max_deg_per_s: float | None = 125.0  # 5 deg per frame at 25 fps
+    max_mm_per_s: float | None = 25.0  # 1 mm per frame at 25 fps
 
 
 @dataclass

@@ -247,6 +247,7 @@ class OfflinePipeline:
             "keyframes": len(keyframes),
             "sessions": len({k.session for k in keyframes}),
             "groups": len(set(group_of_kf.values())),
+            "implausible_motions": getattr(tracker, "implausible", 0),
             "fps": n / wall if wall > 0 else float("nan"),
             "wall_time_s": wall,
             "timing_ms": {"geometry": med(t_geom), "tracking": med(t_track),

@@ -7,6 +7,7 @@ times itself; the pipeline does that.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Any, Protocol
 
@@ -15,7 +16,7 @@ import torch
 from tactile_slam.config import NormalFlowConfig, TrackingConfig
 from tactile_slam.geometry.frame import Frame
 from tactile_slam.registration.normalflow import prepare_reference, register_prepared
-from tactile_slam.registration.result import RegistrationResult
+from tactile_slam.registration.result import RegistrationResult, pose_error
 from tactile_slam.tracking.keyframe import Keyframe
 
 INIT_MODES = ("constant_position", "constant_velocity")
@@ -93,6 +94,10 @@ class Tracker:
     def __init__(self, config: TrackingConfig, registrar: Registrar):
         if config.init not in INIT_MODES:
             raise ValueError(f"tracking.init must be one of {INIT_MODES}, got {config.init!r}")
+        for name in ("max_deg_per_s", "max_mm_per_s"):
+            v = getattr(config, name)
+            if v is not None and not (math.isfinite(v) and v > 0):
+                raise ValueError(f"tracking.{name} must be a positive number or None, got {v!r}")
         self.config = config
         self.registrar = registrar
         self.next_keyframe_id = 0
@@ -104,6 +109,7 @@ class Tracker:
         self.kf_T_prevprev: torch.Tensor | None = None
         self.prev_is_keyframe = False
         self.prev_in_contact = False
+        self.implausible = 0  # registrations refused by the motion-continuity check
 
     # ----------------------------------------------------------------- helpers
     def _make_keyframe(self, frame: Frame, new_session: bool, prev_T_kf: torch.Tensor) -> Keyframe:
@@ -150,7 +156,7 @@ class Tracker:
             return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf], is_keyframe=True))
 
         res = self._register(frame, self._init_guess())
-        if bool(res.ok):
+        if bool(res.ok) and (self.prev_is_keyframe or self._continuous(frame, res)):
             return self._tracked(frame, res, [])
         if self.prev_is_keyframe:
             kf = self._new_session(frame)
@@ -177,6 +183,22 @@ class Tracker:
         return emitted
 
     # ----------------------------------------------------------------- internals
+    def _continuous(self, frame: Frame, res: RegistrationResult) -> bool:
+        """Whether the motion since the previous frame implied by ``res`` (a registration
+        against an older keyframe) stays within the speed limits; frames without
+        timestamps are not checked. A refusal makes the previous frame the keyframe
+        (the lazy rule), whose retry starts from the identity and is not checked."""
+        c = self.config
+        dt = float(frame.timestamp[0]) - float(self.prev.timestamp[0])
+        if not (math.isfinite(dt) and dt > 0) or (c.max_deg_per_s is None and c.max_mm_per_s is None):
+            return True
+        kf_T_frame = torch.linalg.inv(res.tar_T_ref[0].to(torch.float64).cpu())
+        rot, trans = pose_error(self.kf_T_prev[None], kf_T_frame[None])
+        ok = (c.max_deg_per_s is None or float(rot) <= c.max_deg_per_s * dt) and \
+            (c.max_mm_per_s is None or float(trans) <= c.max_mm_per_s * dt)
+        self.implausible += not ok
+        return ok
+
     def _new_session(self, frame: Frame) -> Keyframe:
         return self._make_keyframe(frame, True, _eye())
 

@@ -20,27 +20,28 @@ from tactile_slam.tracking.tracker import Tracker
 
 
 def pose(i: int) -> torch.Tensor:
-    """Sensor pose of frame i: a constant body-frame step (2 degrees about z, 1 mm in x,
-    0.5 mm in y) applied i times."""
+    """Sensor pose of frame i: a constant body-frame step (2 degrees about z, 0.5 mm in x,
+    0.25 mm in y: within the default speed limits at 25 fps) applied i times."""
     a = math.radians(2.0)
     step = torch.eye(4, dtype=torch.float64)
     step[:2, :2] = torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
-    step[:2, 3] = torch.tensor([1e-3, 5e-4])
+    step[:2, 3] = torch.tensor([5e-4, 2.5e-4])
     return torch.linalg.matrix_power(step, i)
 
 
-def frame(i: int, contact: bool = True) -> Frame:
+def frame(i: int, contact: bool = True, fps: float = 25.0) -> Frame:
     z = torch.zeros(1, 4, 4)
     return Frame(
         gradients=torch.zeros(1, 4, 4, 2), height=z, contact=torch.zeros(1, 4, 4, dtype=torch.bool),
         normals=torch.zeros(1, 4, 4, 3), curvature=z, in_contact=torch.tensor([contact]),
-        index=torch.tensor([i]), timestamp=torch.tensor([i / 25.0], dtype=torch.float64), mm_per_px=0.0634,
+        index=torch.tensor([i]), timestamp=torch.tensor([i / fps], dtype=torch.float64), mm_per_px=0.0634,
     )
 
 
 class ScriptedRegistrar:
-    def __init__(self, fails):
+    def __init__(self, fails, slip=None):
         self.fails = fails  # (ref_index, tar_index) -> bool
+        self.slip = slip  # (ref_index, tar_index) -> (4, 4) error applied to the answer, or None
         self.calls: list[tuple[int, int, torch.Tensor]] = []
 
     def prepare(self, ref: Frame):
@@ -51,17 +52,20 @@ class ScriptedRegistrar:
         self.calls.append((ref_index, tar_index, init[0].clone()))
         ok = not self.fails(ref_index, tar_index)
         t = torch.linalg.inv(pose(tar_index)) @ pose(ref_index)
+        if self.slip is not None and self.slip(ref_index, tar_index) is not None:
+            t = self.slip(ref_index, tar_index) @ t
         one = lambda v, dt=torch.float64: torch.tensor([v], dtype=dt)  # noqa: E731
         return RegistrationResult(t[None], one(0.9 if ok else 0.1), one(0.9), one(100, torch.int64),
                                   one(7, torch.int64), one(True, torch.bool), one(ok, torch.bool))
 
 
-def run(contacts, fails=lambda r, t: False, **cfg):
-    reg = ScriptedRegistrar(fails)
+def run(contacts, fails=lambda r, t: False, slip=None, fps=25.0, **cfg):
+    reg = ScriptedRegistrar(fails, slip)
     tr = Tracker(TrackingConfig(**cfg), reg)
-    steps = [tr.step(frame(i, c)) for i, c in enumerate(contacts)]
+    steps = [tr.step(frame(i, c, fps)) for i, c in enumerate(contacts)]
     tail = tr.finish()
     kfs = [k for s in steps for k in s.keyframes] + tail
+    reg.tracker = tr
     return steps, kfs, reg
 
 
@@ -149,9 +153,55 @@ def test_constant_velocity_init_extrapolates():
     torch.testing.assert_close(init, true)  # exact for a constant-velocity motion
 
 
+def _rz(deg: float) -> torch.Tensor:
+    a = math.radians(deg)
+    T = torch.eye(4, dtype=torch.float64)
+    T[:2, :2] = torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    return T
+
+
+def _slip_at_4(r, t):
+    """Against an older keyframe, frame 4 converges 12 degrees off (CCS/SCR still pass)."""
+    return _rz(12.0) if (t == 4 and r < 3) else None
+
+
+def test_implausible_jump_is_a_failure_and_the_retry_recovers():
+    steps, kfs, reg = run([True] * 7, slip=_slip_at_4)
+    assert reg.tracker.implausible == 1
+    s4 = steps[4]
+    assert [k.video_index for k in s4.keyframes] == [3] and not s4.is_keyframe and s4.session == 0
+    assert [c[:2] for c in reg.calls[-3:]] == [(3, 4), (3, 5), (3, 6)]  # retry, then onwards from frame 3
+    check_poses(steps, kfs)  # the slip never entered a pose
+
+
+def test_speed_limits_scale_with_the_frame_interval_and_can_be_disabled():
+    # at 2 fps the same 12-degree slip is below 125 deg/s * 0.5 s: accepted, pose wrong
+    steps, kfs, reg = run([True] * 7, slip=_slip_at_4, fps=2.0)
+    assert reg.tracker.implausible == 0 and [k.video_index for k in kfs] == [0, 6]
+    with pytest.raises(AssertionError):
+        check_poses(steps, kfs)
+    _, kfs, reg = run([True] * 7, slip=_slip_at_4, max_deg_per_s=None)
+    assert reg.tracker.implausible == 0 and [k.video_index for k in kfs] == [0, 6]
+    # a translation slip is caught by the translation limit alone
+    shift = torch.eye(4, dtype=torch.float64)
+    shift[0, 3] = 2e-3
+    _, kfs, reg = run([True] * 7, slip=lambda r, t: shift if (t == 4 and r < 3) else None, max_deg_per_s=None)
+    assert reg.tracker.implausible == 1 and 3 in [k.video_index for k in kfs]
+
+
+def test_frames_without_timestamps_are_not_speed_checked():
+    _, kfs, reg = run([True] * 7, slip=_slip_at_4, fps=float("inf"))  # timestamps all 0
+    assert reg.tracker.implausible == 0 and [k.video_index for k in kfs] == [0, 6]
+
+
 def test_bad_config_and_batch():
     with pytest.raises(ValueError, match="tracking.init"):
         Tracker(TrackingConfig(init="magic"), ScriptedRegistrar(lambda r, t: False))
+    for bad in (0.0, -5.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="max_deg_per_s"):
+            Tracker(TrackingConfig(max_deg_per_s=bad), ScriptedRegistrar(lambda r, t: False))
+        with pytest.raises(ValueError, match="max_mm_per_s"):
+            Tracker(TrackingConfig(max_mm_per_s=bad), ScriptedRegistrar(lambda r, t: False))
     tr = Tracker(TrackingConfig(), ScriptedRegistrar(lambda r, t: False))
     with pytest.raises(ValueError, match="one frame"):
         tr.step(Frame.cat([frame(0), frame(1)]))
