@@ -196,7 +196,8 @@ class OfflinePipeline:
             bar.close()
         wall = time.perf_counter() - t_start
         backend.finish()
-        result = self._write(indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, t_back, wall, error)
+        result = self._write(indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, t_back, wall, error,
+                             getattr(tracker, "implausible", 0))
         self.visualizer.close()
         if error is not None and not isinstance(error, KeyboardInterrupt):
             raise error
@@ -209,7 +210,8 @@ class OfflinePipeline:
         return builder.from_gradients(batch.gradients, batch.contact, batch.index, batch.timestamp)
 
     # ------------------------------------------------------------------ outputs
-    def _write(self, indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, t_back, wall, error) -> RunResult:
+    def _write(self, indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, t_back, wall, error,
+               implausible: int) -> RunResult:
         out = self.out_dir
         n = len(indices)
         contact_frames = sum(1 for k in kf_of if k >= 0)
@@ -247,7 +249,7 @@ class OfflinePipeline:
             "keyframes": len(keyframes),
             "sessions": len({k.session for k in keyframes}),
             "groups": len(set(group_of_kf.values())),
-            "implausible_motions": getattr(tracker, "implausible", 0),
+            "implausible_motions": implausible,
             "fps": n / wall if wall > 0 else float("nan"),
             "wall_time_s": wall,
             "timing_ms": {"geometry": med(t_geom), "tracking": med(t_track),

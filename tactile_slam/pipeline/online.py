@@ -534,6 +534,7 @@ class OnlinePipeline(OfflinePipeline):
                 self.visualizer.on_keyframe(kf)
 
         stopped_by, error = "end_of_stream", None
+        tracker = None
         t_start = time.perf_counter()
         try:
             frames = batches()
@@ -579,7 +580,8 @@ class OnlinePipeline(OfflinePipeline):
         wall = time.perf_counter() - t_start
         if error is not None and not indices:
             raise error
-        result = self._write(indices, kf_of, kf_T, keyframes, kmap, t_geom, t_track, state["step_s"], wall, error)
+        result = self._write(indices, kf_of, kf_T, keyframes, kmap, t_geom, t_track, state["step_s"], wall, error,
+                             getattr(tracker, "implausible", 0))
         result.stats.update(final_stats)
         result.stats.update(self._online_stats(feed, latency, keyframes, state, stopped_by))
         result.stats["completed"] = stopped_by == "end_of_stream"

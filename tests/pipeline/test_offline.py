@@ -17,7 +17,8 @@ from tactile_slam.io.gradients import GradientSequence
 from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
 from tactile_slam.sim.episode import SimulationSettings, read_episode, simulate_episode
 
-STATS_KEYS = {"frames", "contact_frames", "keyframes", "sessions", "fps", "timing_ms", "frames_with_pose"}
+STATS_KEYS = {"frames", "contact_frames", "keyframes", "sessions", "fps", "timing_ms", "frames_with_pose",
+              "implausible_motions"}
 
 
 @pytest.fixture(scope="module")
