@@ -16,7 +16,9 @@ the group's root session) up to date. Per keyframe (offline step order of method
    and loops into another group, wait until enough of them agree with each other (a
    symmetric or periodic object verifies false loops that no two-keyframe test can reject;
    docs/loops.md);
-4. add every accepted loop as a between factor; merge the groups they connect (the root
+4. add every accepted loop as a between factor (``posegraph.refine_loops``: re-measured by
+   NormalFlow over every contact pixel, :mod:`tactile_slam.registration.refine`, except in
+   the ``only_sift`` ablation whose point is the SIFT measurement); merge the groups they connect (the root
    is the group with most keyframes, ties to the new keyframe's group), moving each
    absorbed group rigidly through a loop measurement before solving (the public code
    leaves absorbed poses at their identity-anchored values) and removing its prior;
@@ -32,7 +34,7 @@ import json
 import math
 import time
 from collections.abc import Callable, Iterator, Mapping
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -45,6 +47,7 @@ from tactile_slam.loop.detector import Loop, LoopDetector
 from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.incremental import IncrementalSolver
 from tactile_slam.posegraph.sessions import SessionGroups
+from tactile_slam.registration.refine import refine_edges
 from tactile_slam.tracking.keyframe import Keyframe
 
 
@@ -55,6 +58,9 @@ class BackEndStats:
     keyframes: int = 0
     loops: int = 0
     merges: int = 0
+    refined: int = 0  # loops re-measured (refinements that failed their checks keep the first value)
+    refine_failed: int = 0
+    time_refine: list[float] = field(default_factory=list)
     time_loop_detection: list[float] = field(default_factory=list)
     time_pose_graph: list[float] = field(default_factory=list)
     time_coverage: list[float] = field(default_factory=list)
@@ -97,6 +103,9 @@ class BackEnd:
     """
 
     def __init__(self, config: Config, loop_mode: str | None = "full"):
+        n = config.posegraph.refine_n_samples
+        if n is not None and n < 1:
+            raise ValueError(f"posegraph.refine_n_samples must be >= 1 or None, got {n}")
         self.config = config
         self.graph = PoseGraph(config.posegraph)
         self.solver = IncrementalSolver(self.graph, config.posegraph)
@@ -162,6 +171,11 @@ class BackEnd:
             loops, joins = sel.accepted, sel.merges
         else:
             joins = [(kf.id, lp.ref_id, lp.ref_T_tar) for lp in loops]
+        t_refine = 0.0
+        if loops and self.config.posegraph.refine_loops and self.detector.mode != "only_sift":
+            t0 = time.perf_counter()
+            loops = self._refine(loops)
+            t_refine = time.perf_counter() - t0
         for loop in loops:
             self.graph.add_between(loop.ref_id, loop.tar_id, loop.ref_T_tar, kind="loop")
             if self.gate is not None:
@@ -173,7 +187,8 @@ class BackEnd:
         self.stats.loops += len(loops)
         self.solver.update()
         t2 = time.perf_counter()
-        self.stats.time_pose_graph.append(t2 - t1)
+        self.stats.time_pose_graph.append(t2 - t1 - t_refine)
+        self.stats.time_refine.append(t_refine)
 
         root = self.sessions.group_of(kf.id)
         changed = {root} | {self.sessions.find(m.root) for m in merges}
@@ -194,6 +209,18 @@ class BackEnd:
         self.stats.time_coverage.append(time.perf_counter() - t2)
         return loops
 
+    def _refine(self, loops: list[Loop]) -> list[Loop]:
+        """Accepted loops re-measured over ``posegraph.refine_n_samples`` reference pixels
+        (every contact pixel by default); a loop whose refinement fails its checks keeps
+        its first measurement."""
+        Zs, ok = refine_edges([self.keyframes[lp.ref_id].frame for lp in loops],
+                              [self.keyframes[lp.tar_id].frame for lp in loops],
+                              torch.stack([lp.ref_T_tar for lp in loops]), self.detector.nf_config,
+                              self.config.posegraph.refine_n_samples)
+        self.stats.refined += int(ok.sum())
+        self.stats.refine_failed += int((~ok).sum())
+        return [replace(lp, ref_T_tar=Z) for lp, Z in zip(loops, Zs)]
+
     def summary(self) -> dict:
         """The paper's statistics (Table II/V) and median times per keyframe in ms."""
         med = lambda xs: float(np.median(xs) * 1000) if xs else float("nan")  # noqa: E731
@@ -204,9 +231,12 @@ class BackEnd:
             "loops": st.loops,
             "group_merges": st.merges,
             "loop_gate": asdict(self.gate.stats) if self.gate is not None else None,
+            "refined_loops": st.refined,
+            "refine_failed": st.refine_failed,
             "timing_ms_per_keyframe": {"loop_detection": med(st.time_loop_detection),
                                        "pose_graph": med(st.time_pose_graph),
-                                       "coverage": med(st.time_coverage)},
+                                       "coverage": med(st.time_coverage),
+                                       "refine": med(st.time_refine)},
         }
 
     def write(self, out_dir: Path) -> None:

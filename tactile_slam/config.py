@@ -215,6 +215,11 @@ class PoseGraphConfig:
     gnc_mu_step: float = 1.4
     gnc_max_iters: int = 100
     reinit_merged: bool = True
+    # accepted loops re-measured by NormalFlow from their first value over refine_n_samples
+    # reference pixels (None: every contact pixel), except in the only_sift ablation
+    # (tactile_slam/registration/refine.py)
+    refine_loops: bool = True
+    refine_n_samples: int | None = None
     # incremental updates: first region (poses), boundary test (whitened cost), LM steps per region
     incremental_window: int = 64
     incremental_tol: float = 1e-2

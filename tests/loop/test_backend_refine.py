@@ -1,0 +1,77 @@
+"""The back end re-measures accepted loops over every contact pixel (posegraph.refine_loops)."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from tactile_slam.backend import BackEnd
+from tactile_slam.config import Config
+from tactile_slam.geometry.frame import FrameBuilder
+from tactile_slam.posegraph import se3
+from tactile_slam.registration.refine import refine_edges
+from tactile_slam.registration.result import pose_error
+from tactile_slam.tracking.keyframe import Keyframe
+from tests.registration.surfaces import frames, rigid, textured
+
+
+@pytest.fixture(scope="module")
+def revisit():
+    """One session: keyframe 0, keyframe 1 moved away, keyframe 2 back near 0 (a loop to 0).
+    Poses are ``tar_T_ref`` of the object (reference = keyframe 0's view); slopes carry
+    i.i.d. noise of 0.05 so the 3000-sample verification is measurably off."""
+    views = [torch.eye(4, dtype=torch.float64), rigid(rz_deg=8.0, tx_mm=1.5), rigid(rx_deg=1.5, rz_deg=3.0, ty_mm=0.3)]
+    f = frames(textured(5), views)
+    noise = 0.05 * torch.randn(f.gradients.shape, generator=torch.Generator().manual_seed(1))
+    f = FrameBuilder(Config()).from_gradients((f.gradients + noise).float(), f.contact)
+    kf0_T = [se3.inverse(v) for v in views]  # keyframe k's pose in keyframe 0's frame
+    kfs = [Keyframe(k, 0, f[k], k == 0, torch.eye(4, dtype=torch.float64) if k == 0 else
+                    se3.inverse(kf0_T[k - 1]) @ kf0_T[k]) for k in range(3)]
+    return kfs, torch.stack(kf0_T)
+
+
+def _run(kfs, **posegraph):
+    cfg = Config()
+    be = BackEnd(replace(cfg, posegraph=replace(cfg.posegraph, **posegraph)))
+    for k in kfs:
+        be.add(k)
+    return be
+
+
+def test_accepted_loops_are_refined_and_enter_the_graph(revisit):
+    kfs, kf0_T = revisit
+    plain, refined = _run(kfs, refine_loops=False), _run(kfs, refine_loops=True)
+    assert len(plain.loops) >= 1 and [(lp.ref_id, lp.tar_id) for lp in plain.loops] == \
+        [(lp.ref_id, lp.tar_id) for lp in refined.loops]
+    assert refined.stats.refined == len(refined.loops) and plain.stats.refined == 0
+    assert refined.summary()["refined_loops"] == len(refined.loops)
+    for a, b in zip(plain.loops, refined.loops):
+        # the factor is NormalFlow over every contact pixel from the verified measurement
+        # (test_refine.py shows it is the more accurate one)
+        expected, ok = refine_edges([kfs[a.ref_id].frame], [kfs[a.tar_id].frame], a.ref_T_tar[None],
+                                    refined.detector.nf_config)
+        assert bool(ok[0]) and not torch.equal(b.ref_T_tar, a.ref_T_tar)
+        torch.testing.assert_close(b.ref_T_tar, expected[0])
+        truth = (se3.inverse(kf0_T[a.ref_id]) @ kf0_T[a.tar_id])[None]
+        rot_b, trans_b = pose_error(b.ref_T_tar[None], truth)
+        assert float(rot_b) < 0.3 and float(trans_b) < 0.01
+    e = refined.graph.edges
+    loop_Z = e.Z[e.loop]
+    torch.testing.assert_close(loop_Z, torch.stack([lp.ref_T_tar for lp in refined.loops]))
+
+
+def test_only_sift_loops_keep_the_sift_measurement(revisit):
+    kfs, _ = revisit
+    cfg = Config()
+    be = BackEnd(cfg, loop_mode="only_sift")
+    for k in kfs:
+        be.add(k)
+    assert len(be.loops) >= 1 and be.stats.refined == 0
+
+
+def test_bad_refine_budget_is_refused():
+    cfg = Config()
+    with pytest.raises(ValueError, match="refine_n_samples"):
+        BackEnd(replace(cfg, posegraph=replace(cfg.posegraph, refine_n_samples=0)))
