@@ -18,10 +18,11 @@ the group's root session) up to date. Per keyframe (offline step order of method
    docs/loops.md);
 4. add every accepted loop as a between factor (``posegraph.refine_loops``: re-measured by
    NormalFlow over every contact pixel, :mod:`tactile_slam.registration.refine`, except in
-   the ``only_sift`` ablation whose point is the SIFT measurement); merge the groups they connect (the root
-   is the group with most keyframes, ties to the new keyframe's group), moving each
-   absorbed group rigidly through a loop measurement before solving (the public code
-   leaves absorbed poses at their identity-anchored values) and removing its prior;
+   the ``only_sift`` ablation whose point is the SIFT measurement); merge the groups they
+   connect (the root is the group with most keyframes, ties to the new keyframe's group),
+   moving each absorbed group rigidly through a loop measurement before solving (the
+   public code leaves absorbed poses at their identity-anchored values) and removing its
+   prior;
 5. solve incrementally (only what the new factors disturb);
 6. insert the keyframe into the coverage set with its solved pose, refresh the poses of
    the keyframes the solve moved, and merge the coverage graphs of merged groups;

@@ -146,7 +146,7 @@ class TrackingConfig:
     scr_threshold: float = 0.3
     flush_session_tail: bool = True
     init: str = "constant_position"
-    # motion continuity (docs/registration.md, "Tracking"): a registration against an older
+    # motion continuity (docs/benchmarks.md, "Motion continuity"): a registration against an older
     # keyframe that implies a faster sensor motion since the previous frame than this is a
     # failure (a slip to a wrong alignment that CCS/SCR cannot see); None disables each
     max_deg_per_s: float | None = 125.0  # 5 deg per frame at 25 fps

@@ -1,6 +1,12 @@
 """The tracker: NormalFlow from the current keyframe to each frame, lazy keyframes,
 sessions (method.md section 5).
 
+Beyond the method's CCS/SCR failure test, a registration against an older keyframe that
+implies a sensor motion since the previous frame faster than ``tracking.max_deg_per_s`` /
+``max_mm_per_s`` counts as a failure (motion continuity): on a line contact or a periodic
+texture NormalFlow can converge to a wrong alignment that the scores cannot tell apart,
+and the lazy rule's retry from the previous frame recovers (docs/benchmarks.md).
+
 A pure algorithm object: state plus :meth:`Tracker.step`. It never reads files or
 times itself; the pipeline does that.
 """
