@@ -149,8 +149,8 @@ class TrackingConfig:
     # motion continuity (docs/benchmarks.md, "Motion continuity"): a registration against an older
     # keyframe that implies a faster sensor motion since the previous frame than this is a
     # failure (a slip to a wrong alignment that CCS/SCR cannot see); None disables each
-    max_deg_per_s: float | None = 360.0  # a turn per second: 14.4 deg per frame at 25 fps
-    max_mm_per_s: float | None = 50.0  # 2 mm per frame at 25 fps
+    max_deg_per_s: float | None = 125.0  # 5 deg per frame at 25 fps
+    max_mm_per_s: float | None = 25.0  # 1 mm per frame at 25 fps
 
 
 @dataclass
