@@ -148,7 +148,8 @@ class TrackingConfig:
     init: str = "constant_position"
     # motion continuity (docs/benchmarks.md, "Motion continuity"): a registration against an older
     # keyframe that implies a faster sensor motion since the previous frame than this is a
-    # failure (a slip to a wrong alignment that CCS/SCR cannot see); None disables each
+    # failure (a slip to a wrong alignment that CCS/SCR cannot see), retried against the
+    # previous frame, which accepts real fast motion at the cost of a keyframe; None disables
     max_deg_per_s: float | None = 125.0  # 5 deg per frame at 25 fps
     max_mm_per_s: float | None = 25.0  # 1 mm per frame at 25 fps
 

@@ -5,7 +5,8 @@ Beyond the method's CCS/SCR failure test, a registration against an older keyfra
 implies a sensor motion since the previous frame faster than ``tracking.max_deg_per_s`` /
 ``max_mm_per_s`` counts as a failure (motion continuity): on a line contact or a periodic
 texture NormalFlow can converge to a wrong alignment that the scores cannot tell apart,
-and the lazy rule's retry from the previous frame recovers (docs/benchmarks.md).
+and the lazy rule's retry from the previous frame recovers; a legitimately fast motion is
+accepted by that retry and only costs a keyframe (docs/benchmarks.md).
 
 A pure algorithm object: state plus :meth:`Tracker.step`. It never reads files or
 times itself; the pipeline does that.
