@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
+import typing
 from typing import Any
 
 import yaml
@@ -331,13 +332,39 @@ def _update(obj: Any, values: dict[str, Any], section: str) -> Any:
     if not isinstance(values, dict):
         raise ConfigError(f"config section {section!r} must be a mapping")
     known = {f.name: f for f in dataclasses.fields(obj)}
+    hints = typing.get_type_hints(type(obj))
     kwargs = {}
     for key, value in values.items():
         if key not in known:
             raise ConfigError(f"unknown key {section}.{key}")
-        default = getattr(obj, key)
-        kwargs[key] = tuple(value) if isinstance(default, tuple) and isinstance(value, list) else value
+        kwargs[key] = _typed(value, hints[key], f"{section}.{key}")
     return dataclasses.replace(obj, **kwargs)
+
+
+def _typed(value: Any, hint: Any, where: str) -> Any:
+    """``value`` checked against a field's annotation (``bool``, ``int``, ``float``,
+    ``str``, ``X | None``, ``tuple[int, ...]``); ints are accepted for floats and lists
+    for tuples. Raises :class:`ConfigError` naming the key otherwise."""
+    args = typing.get_args(hint)
+    if type(None) in args:
+        if value is None:
+            return None
+        (hint,) = [a for a in args if a is not type(None)]
+    if typing.get_origin(hint) is tuple:
+        if isinstance(value, (list, tuple)):
+            item = typing.get_args(hint)[0]  # tuple[X, ...]
+            return tuple(_typed(v, item, f"{where}[{i}]") for i, v in enumerate(value))
+        raise ConfigError(f"{where} must be a list, got {value!r}")
+    if hint is bool and isinstance(value, bool):
+        return value
+    if hint is int and isinstance(value, int) and not isinstance(value, bool):
+        return value
+    if hint is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        return float(value)
+    if hint is str and isinstance(value, str):
+        return value
+    name = getattr(hint, "__name__", str(hint))
+    raise ConfigError(f"{where} must be of type {name}{' or null' if type(None) in args else ''}, got {value!r}")
 
 
 def _from_gelslam_layout(data: dict[str, Any]) -> dict[str, Any]:

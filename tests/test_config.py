@@ -75,6 +75,15 @@ def test_own_layout_roundtrip(tmp_path):
         ("- a\n- b", "mapping"),
         ("sensor: [1, 2", "not valid YAML"),
         ("curvature: {blur_ksize: 4}", "odd"),
+        # values of the wrong type name their key instead of failing later in the algorithm
+        ("tracking: {max_deg_per_s: fast}", r"tracking.max_deg_per_s must be of type float or null, got 'fast'"),
+        ("normalflow: {n_samples: lots}", r"normalflow.n_samples must be of type int or null"),
+        ("normalflow: {n_samples: 3000.5}", r"normalflow.n_samples must be of type int"),
+        ("normalflow: {max_iters: true}", r"normalflow.max_iters must be of type int"),
+        ("loop: {consistency: 'yes'}", r"loop.consistency must be of type bool"),
+        ("normalflow: {coarse_factors: 4}", r"normalflow.coarse_factors must be a list"),
+        ("normalflow: {coarse_factors: [4, x]}", r"normalflow.coarse_factors\[1\] must be of type int"),
+        ("sensor: {name: 3}", r"sensor.name must be of type str"),
     ],
 )
 def test_bad_configs(tmp_path, text, match):
@@ -82,6 +91,18 @@ def test_bad_configs(tmp_path, text, match):
     p.write_text(text)
     with pytest.raises(ConfigError, match=match):
         Config.from_yaml(p)
+
+
+def test_values_are_typed(tmp_path):
+    """ints are accepted where floats are expected (YAML writes 30 for 30.0), null where
+    the field allows it; lists become tuples."""
+    p = tmp_path / "c.yaml"
+    p.write_text("tracking: {max_deg_per_s: null, max_mm_per_s: 30}\n"
+                 "normalflow: {coarse_factors: [8, 4], n_samples: null}\n")
+    cfg = Config.from_yaml(p)
+    assert cfg.tracking.max_deg_per_s is None
+    assert cfg.tracking.max_mm_per_s == 30.0 and isinstance(cfg.tracking.max_mm_per_s, float)
+    assert cfg.normalflow.coarse_factors == (8, 4) and cfg.normalflow.n_samples is None
 
 
 def test_missing_file(tmp_path):
