@@ -181,7 +181,6 @@ class LoopConfig:
     max_init_rot_deg: float | None = None  # reject loops whose NF pose leaves the 2-D guess by more
     max_init_trans_mm: float | None = None
     verify_batch: int = 16  # NormalFlow pairs per batch
-    prepared_cache: int = 64  # keyframes whose NormalFlow preparation is kept (about 1 MB each)
     # back-end acceptance (tactile_slam/loop/consistency.py; docs/loops.md): a loop within a
     # group that matches the estimate within base + rate * drift path (mm of motion measured
     # by the factors between its ends) is accepted; beyond doubt_factor x that it is rejected;

@@ -12,9 +12,12 @@ For a query keyframe ``t`` the detector
 4. matches each against the query and fits the 2-D similarity by RANSAC; pairs with at
    least ``min_sift_inliers`` inliers are the loop candidates, each with an SE(3)
    initial guess about the image centre;
-5. verifies all candidates as one NormalFlow batch (candidate = reference, query =
-   target) with the loop CCS/SCR thresholds, optionally also requiring the refined
-   pose to stay near the 2-D guess; each accepted pair is a :class:`Loop`.
+5. verifies all candidates as one NormalFlow batch with the loop CCS/SCR thresholds,
+   optionally also requiring the refined pose to stay near the 2-D guess; each accepted
+   pair is a :class:`Loop`. The *query* is the batch's one shared reference and the
+   candidates are its targets (method.md 6.4 has candidate = reference): one
+   preparation per query instead of one per candidate, and the shared-reference solve;
+   measured faster and with more correct loops (docs/loops.md).
 
 Modes (``LoopConfig.mode``): ``full``; ``only_sift`` (the lifted 2-D estimate is the
 measurement, no NormalFlow, no CCS/SCR); ``only_nf`` (no SIFT: NormalFlow from identity
@@ -26,7 +29,6 @@ from __future__ import annotations
 
 import math
 import time
-from collections import OrderedDict
 from collections.abc import Collection, Mapping, Sequence
 from dataclasses import dataclass, fields, replace
 
@@ -37,7 +39,7 @@ from tactile_slam.geometry.frame import Frame
 from tactile_slam.loop.features import Features, SiftSettings, curvature_features, image_features
 from tactile_slam.loop.matching import RansacSettings, match, similarity_to_se3
 from tactile_slam.loop.retrieval import DescriptorIndex, Footprint, IndexSettings, footprints, pose_gate
-from tactile_slam.registration.normalflow import PreparedReference, cat_prepared, prepare_reference, register_prepared
+from tactile_slam.registration.normalflow import prepare_reference, register_prepared
 from tactile_slam.registration.result import RegistrationResult
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -95,7 +97,6 @@ class DetectionStats:
     matched: int = 0
     candidates: int = 0
     verified: int = 0
-    prepared_reused: int = 0
     rejected_deviation: int = 0
     loops: int = 0
     time_features: float = 0.0
@@ -115,13 +116,6 @@ def rigid_inverse(T: torch.Tensor) -> torch.Tensor:
     out[..., :3, 3] = -(rt @ T[..., :3, 3:]).squeeze(-1)
     out[..., 3, 3] = 1.0
     return out
-
-
-def repeat_frame(frame: Frame, b: int) -> Frame:
-    """A ``B = 1`` frame broadcast to ``b`` elements without copying (expanded views)."""
-    kw = {f.name: getattr(frame, f.name).expand(b, *getattr(frame, f.name).shape[1:])
-          for f in fields(frame) if f.name != "mm_per_px"}
-    return Frame(mm_per_px=frame.mm_per_px, **kw)
 
 
 def pose_deviation(a_T: torch.Tensor, b_T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -148,9 +142,8 @@ class LoopDetector:
         self.mode = mode or lc.mode
         if self.mode not in MODES:
             raise LoopError(f"loop mode must be one of {MODES}, got {self.mode!r}")
-        if lc.min_sift_inliers < 3 or lc.max_candidates < 1 or lc.verify_batch < 1 or lc.prepared_cache < 0:
-            raise LoopError("loop.min_sift_inliers must be >= 3, max_candidates and verify_batch >= 1, "
-                            "prepared_cache >= 0")
+        if lc.min_sift_inliers < 3 or lc.max_candidates < 1 or lc.verify_batch < 1:
+            raise LoopError("loop.min_sift_inliers must be >= 3, max_candidates and verify_batch >= 1")
         self.sift = SiftSettings(lc.sift_backend, lc.sift_contrast_threshold, lc.sift_octave_layers,
                                  lc.sift_max_features, config.final_erode_px)
         self.ransac = RansacSettings(lc.min_sift_inliers, lc.ransac_iterations, lc.ransac_threshold_px,
@@ -162,7 +155,6 @@ class LoopDetector:
         self._matchable: set[int] = set()  # ids with at least min_sift_inliers keypoints
         self._footprints: dict[int, Footprint | None] = {}
         self._removed: set[int] = set()
-        self._prepared: OrderedDict[int, PreparedReference] = OrderedDict()  # most recently used last
         self.stats = DetectionStats()
 
     # ------------------------------------------------------------------ map
@@ -217,7 +209,6 @@ class LoopDetector:
         self._matchable.discard(kf_id)
         del self._footprints[kf_id]
         self.index.remove(kf_id)
-        self._prepared.pop(kf_id, None)
         self._removed.add(kf_id)
 
     # ------------------------------------------------------------------ detection
@@ -317,47 +308,37 @@ class LoopDetector:
         return [r for r in cands if r not in dropped]
 
     def verify(self, query: Keyframe, refs: Sequence[Keyframe], init_tar_T_ref: torch.Tensor) -> RegistrationResult:
-        """NormalFlow from each reference keyframe to the query, in batches of
+        """NormalFlow between the query and each candidate keyframe, in batches of
         ``loop.verify_batch`` pairs, with the loop CCS/SCR thresholds.
 
+        The query is the one prepared reference of every batch (its samples, its CCS and
+        SCR) and the candidates are the targets; the poses are returned the other way
+        round, as the candidates' ``tar_T_ref``.
+
         Args:
-            query: the target keyframe.
-            refs: ``B`` reference keyframes.
-            init_tar_T_ref: ``(B, 4, 4)`` float64 initial tar_T_ref (metres).
+            query: the query keyframe.
+            refs: ``B`` candidate keyframes.
+            init_tar_T_ref: ``(B, 4, 4)`` float64 initial ``query_T_candidate`` (metres).
 
         Returns:
-            a :class:`RegistrationResult` of ``B`` pairs (``ok`` = passed every check).
+            a :class:`RegistrationResult` of ``B`` pairs whose ``tar_T_ref`` is
+            ``query_T_candidate`` (``ok`` = passed every check).
         """
         if len(refs) == 0 or init_tar_T_ref.shape != (len(refs), 4, 4):
             raise LoopError(f"need B >= 1 references and (B, 4, 4) initial poses, got {len(refs)} and "
                             f"{tuple(init_tar_T_ref.shape)}")
         t0 = time.perf_counter()
+        prep = prepare_reference(_check_keyframe(query), self.nf_config)
         step = self.config.loop.verify_batch
         out = []
         for a in range(0, len(refs), step):
-            chunk = refs[a:a + step]
-            prep = cat_prepared([self._prepared_reference(kf) for kf in chunk])
-            tar = repeat_frame(query.frame.to(prep.device), len(chunk))
-            out.append(register_prepared(prep, tar, init_tar_T_ref[a:a + step].to(prep.device), self.nf_config))
+            tar = Frame.cat([_check_keyframe(kf) for kf in refs[a:a + step]]).to(prep.device)
+            res = register_prepared(prep, tar, rigid_inverse(init_tar_T_ref[a:a + step].double()).to(prep.device),
+                                    self.nf_config)
+            out.append(replace(res, tar_T_ref=rigid_inverse(res.tar_T_ref.double())))
         self.stats.verified += len(refs)
         self.stats.time_verification += time.perf_counter() - t0
         return RegistrationResult.cat(out)
-
-    def _prepared_reference(self, keyframe: Keyframe) -> PreparedReference:
-        """NormalFlow's per-reference work for a keyframe, kept for the ``loop.prepared_cache``
-        most recently verified keyframes (a candidate is usually verified again by the
-        next queries nearby)."""
-        prep = self._prepared.get(keyframe.id)
-        if prep is not None:
-            self._prepared.move_to_end(keyframe.id)
-            self.stats.prepared_reused += 1
-            return prep
-        prep = prepare_reference(_check_keyframe(keyframe), self.nf_config)
-        if self.config.loop.prepared_cache > 0:
-            self._prepared[keyframe.id] = prep
-            while len(self._prepared) > self.config.loop.prepared_cache:
-                self._prepared.popitem(last=False)
-        return prep
 
     def _verify_and_accept(self, query: Keyframe, cands: list[int], init: torch.Tensor, inliers: list[int],
                            keyframes: Mapping[int, Keyframe]) -> list[Loop]:

@@ -17,7 +17,6 @@ with ``ok = False`` and a finite pose.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -193,38 +192,6 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
               for f in sorted(config.coarse_factors, reverse=True)]
     levels.append(_level(points, normals, sobel_at(normals_map, idx) / s, valid, 1, config.jacobian))
     return PreparedReference(points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s)
-
-
-def cat_prepared(preps: Sequence[PreparedReference]) -> PreparedReference:
-    """One batch of references from separately prepared ones (e.g. cached per keyframe),
-    their sample dimension padded to the widest; the same as preparing the frames as one
-    batch (tested). All must share image size, scale, dtype, device and levels."""
-    if not preps:
-        raise RegistrationError("no prepared references to concatenate")
-    first = preps[0]
-    if len(preps) == 1:
-        return first
-    if any(p.shape != first.shape or p.m_per_px != first.m_per_px or p.dtype != first.dtype
-           or [lv.factor for lv in p.levels] != [lv.factor for lv in first.levels] for p in preps):
-        raise RegistrationError("prepared references differ in image size, scale, dtype or levels")
-    k = max(p.points.shape[1] for p in preps)
-
-    def cat(get, dim: int) -> torch.Tensor:  # pad the sample dimension ``dim`` with zeros
-        parts = [get(p) for p in preps]
-        return torch.cat([F.pad(x, (0, 0) * (x.ndim - 1 - dim) + (0, k - x.shape[dim])) for x in parts])
-
-    def jac_t(p: PreparedReference, i: int) -> torch.Tensor:  # (B, 5, 3K) -> (B, 5, 3, K)
-        x = p.levels[i].jacobian_t
-        return x.view(x.shape[0], 5, 3, -1)
-
-    levels = [Level(cat(lambda p, i=i: p.levels[i].normals_t, 2),
-                    cat(lambda p, i=i: jac_t(p, i), 3).reshape(-1, 5, 3 * k),
-                    cat(lambda p, i=i: p.levels[i].jtj, 1),
-                    torch.cat([p.levels[i].ata_full for p in preps]), lv.factor)
-              for i, lv in enumerate(first.levels)]
-    return PreparedReference(cat(lambda p: p.points_t, 2), cat(lambda p: p.curvature, 1),
-                             torch.cat([p.spread for p in preps]), cat(lambda p: p.valid, 1), levels, first.shape,
-                             first.m_per_px)
 
 
 def _spread(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:

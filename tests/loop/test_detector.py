@@ -10,7 +10,9 @@ import pytest
 import torch
 
 from tactile_slam.config import Config
+from tactile_slam.geometry.frame import Frame
 from tactile_slam.loop.detector import Loop, LoopDetector, LoopError, rigid_inverse
+from tactile_slam.registration.normalflow import register
 from tactile_slam.registration.result import pose_error
 from tactile_slam.tracking.keyframe import Keyframe
 from tests.registration.surfaces import Surface, frames, rigid, textured
@@ -118,27 +120,26 @@ def test_batch_verification_equals_per_pair(scene):
     torch.testing.assert_close(chunked.tar_T_ref, batch.tar_T_ref, atol=1e-7, rtol=0)
 
 
-def test_prepared_references_are_reused_with_the_same_result(scene):
-    init = torch.stack([T_LOOP, EYE])
-    fresh = LoopDetector(replace(Config(), loop=replace(Config().loop, prepared_cache=0)))
+def test_verification_uses_the_query_as_reference(scene):
+    """Verification registers the query (reference, prepared once) to the candidates
+    (targets) and returns the candidates' ``query_T_candidate``: the same as registering
+    the pairs that way directly, and close to the method's direction (candidate as
+    reference) on these noise-free frames."""
     det = _detector(scene)
-    first = det.verify(scene[2], [scene[0], scene[1]], init)
-    assert det.stats.prepared_reused == 0
-    again = det.verify(scene[2], [scene[1], scene[0]], init.flip(0))  # both cached now
-    assert det.stats.prepared_reused == 2
-    ref = fresh.verify(scene[2], [scene[1], scene[0]], init.flip(0))
-    assert fresh.stats.prepared_reused == 0
-    torch.testing.assert_close(again.tar_T_ref, ref.tar_T_ref, atol=1e-7, rtol=0)
-    torch.testing.assert_close(again.tar_T_ref.flip(0), first.tar_T_ref, atol=1e-7, rtol=0)
-    assert bool(again.ok[1]) and bool(first.ok[0])
-    det.remove(0)  # a removed keyframe leaves the cache
-    det.verify(scene[2], [scene[0]], init[:1])
-    assert det.stats.prepared_reused == 2
-    small = LoopDetector(replace(Config(), loop=replace(Config().loop, prepared_cache=1)))
-    for kf in (scene[0], scene[1], scene[0]):  # capacity 1: the oldest is evicted
-        small.verify(scene[2], [kf], init[:1])
-    assert small.stats.prepared_reused == 0
-
+    refs = [scene[0], scene[1]]
+    init = torch.stack([T_LOOP, EYE])
+    got = det.verify(scene[2], refs, init)
+    direct = register(scene[2].frame, Frame.cat([scene[0].frame, scene[1].frame]), rigid_inverse(init),
+                      det.nf_config)
+    torch.testing.assert_close(got.tar_T_ref, rigid_inverse(direct.tar_T_ref.double()), atol=1e-9, rtol=0)
+    torch.testing.assert_close(got.ccs, direct.ccs, equal_nan=True)
+    assert got.ok.tolist() == direct.ok.tolist()
+    method = register(Frame.cat([scene[0].frame, scene[1].frame]), Frame.cat([scene[2].frame] * 2), init,
+                      det.nf_config)
+    both = got.ok & method.ok
+    assert bool(both.any())
+    rot, trans = pose_error(got.tar_T_ref[both], method.tar_T_ref.double()[both])
+    assert float(rot.max()) < 0.05 and float(trans.max()) < 0.005
 
 def test_only_sift_mode_uses_lifted_estimate(scene):
     det = _detector(scene, mode="only_sift")
@@ -168,8 +169,6 @@ def test_image_sift_needs_images(scene):
 def test_bad_configuration_and_input(scene):
     with pytest.raises(LoopError, match="mode"):
         LoopDetector(Config(), mode="fast")
-    with pytest.raises(LoopError, match="prepared_cache"):
-        LoopDetector(replace(Config(), loop=replace(Config().loop, prepared_cache=-1)))
     det = _detector(scene, ids=(0,))
     with pytest.raises(LoopError, match="never added"):
         det.detect(scene[2], [1], {}, {}, scene)

@@ -6,7 +6,6 @@ import torch
 from tactile_slam.config import NormalFlowConfig
 from tactile_slam.geometry.frame import Frame
 from tactile_slam.registration.normalflow import (
-    cat_prepared,
     normalflow,
     prepare_reference,
     register,
@@ -132,24 +131,6 @@ def test_different_contact_sizes_in_one_batch():
     _close(both[1], register(b[0], b[1], None, cfg))
     rot, trans = pose_error(both.tar_T_ref, truth.expand(2, 4, 4))
     assert (rot < 0.1).all() and (trans < 0.01).all()
-
-
-def test_concatenated_preparations_equal_a_batch_preparation():
-    """References prepared one by one (different sample counts) and concatenated give
-    the batch preparation's results."""
-    truth = rigid(rz_deg=6, tx_mm=0.4)
-    a = frames(replace(bumpy(1), depth=0.3e-3), [EYE, truth])
-    b = frames(replace(bumpy(1), depth=0.7e-3), [EYE, truth])
-    cfg = NormalFlowConfig(n_samples=None)
-    joined = cat_prepared([prepare_reference(a[0], cfg), prepare_reference(b[0], cfg)])
-    batch = prepare_reference(Frame.cat([a[0], b[0]]), cfg)
-    assert joined.points.shape == batch.points.shape and torch.equal(joined.valid, batch.valid)
-    tars = Frame.cat([a[1], b[1]])
-    _close(register_prepared(joined, tars, None, cfg), register_prepared(batch, tars, None, cfg), 1e-6, 1e-6)
-    with pytest.raises(RegistrationError):
-        cat_prepared([])
-    with pytest.raises(RegistrationError):
-        cat_prepared([prepare_reference(a[0], cfg), prepare_reference(b[0], replace(cfg, coarse_factors=(4,)))])
 
 
 def test_float32_matches_float64(scene, batched):
