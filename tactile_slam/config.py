@@ -17,9 +17,9 @@ gets the right values without extra keys.
 from __future__ import annotations
 
 import dataclasses
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
-import typing
 from typing import Any
 
 import yaml

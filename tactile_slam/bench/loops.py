@@ -42,8 +42,9 @@ from tactile_slam.bench.common import rendered_frames, timing_stats, write_json
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.loop.coverage import CoverageSet
-from tactile_slam.loop.detector import LoopDetector, rigid_inverse
+from tactile_slam.loop.detector import LoopDetector
 from tactile_slam.loop.retrieval import DescriptorIndex, IndexSettings
+from tactile_slam.posegraph import se3
 from tactile_slam.registration.result import pose_error
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -124,7 +125,7 @@ def true_revisits(kfs: list[Keyframe], obj_T: torch.Tensor, overlap: float, reac
         for r in near:
             if r == t - 1 and kfs[r].session == kfs[t].session:
                 continue
-            if overlap_fraction(kfs[r], kfs[t], rigid_inverse(obj_T[t]) @ obj_T[r]) >= overlap:
+            if overlap_fraction(kfs[r], kfs[t], se3.inverse(obj_T[t]) @ obj_T[r]) >= overlap:
                 out.add((r, t))
     return out
 
@@ -144,7 +145,7 @@ def score_backend(kfs: list[Keyframe], obj_T_frames: np.ndarray, config: Config,
     be.finish()
     correct, wrong, hit = 0, [], set()
     for lp in be.loops:
-        rot, trans = pose_error(lp.ref_T_tar[None], (rigid_inverse(obj_T[lp.ref_id]) @ obj_T[lp.tar_id])[None])
+        rot, trans = pose_error(lp.ref_T_tar[None], (se3.inverse(obj_T[lp.ref_id]) @ obj_T[lp.tar_id])[None])
         if float(rot) <= 1.0 and float(trans) <= 0.3:
             correct += 1
             hit.add(lp.tar_id)
@@ -198,13 +199,13 @@ def score_episode(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, mode: 
     for k in kfs:
         det.add(k)
         head = heads.setdefault(k.session, k.id)
-        start_T[k.id] = rigid_inverse(obj_T[head]) @ obj_T[k.id]
+        start_T[k.id] = se3.inverse(obj_T[head]) @ obj_T[k.id]
         group[k.id] = k.session if realistic else k.id
         eligible = cov.active if cov is not None else [r for r in kmap if r < k.id]
         for r in eligible:
             if r == k.id - 1 and kmap[r].session == k.session:
                 continue
-            if overlap_fraction(kmap[r], k, rigid_inverse(obj_T[k.id]) @ obj_T[r]) >= overlap:
+            if overlap_fraction(kmap[r], k, se3.inverse(obj_T[k.id]) @ obj_T[r]) >= overlap:
                 true_pairs.add((r, k.id))
                 queries_true.add(k.id)
         t0 = time.perf_counter()
@@ -217,7 +218,7 @@ def score_episode(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, mode: 
                 if not cov.is_active(r):
                     det.remove(r)
         for lp in loops:
-            true_ref_T_tar = rigid_inverse(obj_T[lp.ref_id]) @ obj_T[lp.tar_id]
+            true_ref_T_tar = se3.inverse(obj_T[lp.ref_id]) @ obj_T[lp.tar_id]
             rot, trans = pose_error(lp.ref_T_tar[None], true_ref_T_tar[None])
             if float(rot) <= 1.0 and float(trans) <= 0.3:
                 correct += 1
@@ -246,7 +247,7 @@ def timing_vs_size(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, sizes
             continue
         det = LoopDetector(config)
         kmap = {k.id: k for k in kfs[:n]}
-        start_T = {k.id: rigid_inverse(obj_T[0]) @ obj_T[k.id] for k in kfs[:n]}
+        start_T = {k.id: se3.inverse(obj_T[0]) @ obj_T[k.id] for k in kfs[:n]}
         group = {k.id: k.session for k in kfs[:n]}
         for k in kfs[:n - queries]:
             det.add(k)

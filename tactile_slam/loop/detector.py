@@ -39,6 +39,7 @@ from tactile_slam.geometry.frame import Frame
 from tactile_slam.loop.features import Features, SiftSettings, curvature_features, image_features
 from tactile_slam.loop.matching import RansacSettings, match, similarity_to_se3
 from tactile_slam.loop.retrieval import DescriptorIndex, Footprint, IndexSettings, footprints, pose_gate
+from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import prepare_reference, register_prepared
 from tactile_slam.registration.result import RegistrationResult
 from tactile_slam.tracking.keyframe import Keyframe
@@ -106,16 +107,6 @@ class DetectionStats:
 
     def to_dict(self) -> dict:
         return {f.name: getattr(self, f.name) for f in fields(self)}
-
-
-def rigid_inverse(T: torch.Tensor) -> torch.Tensor:
-    """Inverse of ``(..., 4, 4)`` rigid transforms."""
-    out = torch.zeros_like(T)
-    rt = T[..., :3, :3].transpose(-1, -2)
-    out[..., :3, :3] = rt
-    out[..., :3, 3] = -(rt @ T[..., :3, 3:]).squeeze(-1)
-    out[..., 3, 3] = 1.0
-    return out
 
 
 def pose_deviation(a_T: torch.Tensor, b_T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -265,7 +256,7 @@ class LoopDetector:
             return []
         init = torch.stack(inits)
         if self.mode == "only_sift":
-            ref_T_tar = rigid_inverse(init)
+            ref_T_tar = se3.inverse(init)
             loops = [Loop(r, query.id, ref_T_tar[i], math.nan, math.nan, inliers[i], init[i])
                      for i, r in enumerate(found)]
             self.stats.loops += len(loops)
@@ -333,9 +324,9 @@ class LoopDetector:
         out = []
         for a in range(0, len(refs), step):
             tar = Frame.cat([_check_keyframe(kf) for kf in refs[a:a + step]]).to(prep.device)
-            res = register_prepared(prep, tar, rigid_inverse(init_tar_T_ref[a:a + step].double()).to(prep.device),
+            res = register_prepared(prep, tar, se3.inverse(init_tar_T_ref[a:a + step].double()).to(prep.device),
                                     self.nf_config)
-            out.append(replace(res, tar_T_ref=rigid_inverse(res.tar_T_ref.double())))
+            out.append(replace(res, tar_T_ref=se3.inverse(res.tar_T_ref.double())))
         self.stats.verified += len(refs)
         self.stats.time_verification += time.perf_counter() - t0
         return RegistrationResult.cat(out)
@@ -355,7 +346,7 @@ class LoopDetector:
                 far |= trans > lc.max_init_trans_mm
             self.stats.rejected_deviation += int((ok & far).sum())
             ok &= ~far
-        ref_T_tar = rigid_inverse(T)
+        ref_T_tar = se3.inverse(T)
         loops = [Loop(r, query.id, ref_T_tar[i], float(res.ccs[i]), float(res.scr[i]), inliers[i], init[i].clone())
                  for i, r in enumerate(cands) if bool(ok[i])]
         self.stats.loops += len(loops)

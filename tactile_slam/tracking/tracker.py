@@ -89,6 +89,11 @@ def _eye() -> torch.Tensor:
     return torch.eye(4, dtype=torch.float64)
 
 
+def _kf_T_frame(res: RegistrationResult) -> torch.Tensor:
+    """``(4, 4)`` float64 pose of the target frame in the keyframe from a ``B = 1`` result."""
+    return torch.linalg.inv(res.tar_T_ref[0].to(torch.float64).cpu())
+
+
 class Tracker:
     """Lazy-keyframe tracker.
 
@@ -163,8 +168,10 @@ class Tracker:
             return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf], is_keyframe=True))
 
         res = self._register(frame, self._init_guess())
-        if bool(res.ok) and (self.prev_is_keyframe or self._continuous(frame, res)):
-            return self._tracked(frame, res, [])
+        if bool(res.ok):
+            kf_T_frame = _kf_T_frame(res)
+            if self.prev_is_keyframe or self._continuous(frame, kf_T_frame):
+                return self._tracked(frame, res, kf_T_frame, [])
         if self.prev_is_keyframe:
             kf = self._new_session(frame)
             return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf], is_keyframe=True))
@@ -177,7 +184,7 @@ class Tracker:
         self.kf_T_prev = _eye()
         res = self._register(frame, self._init_guess())
         if bool(res.ok):
-            return self._tracked(frame, res, [prev_kf])
+            return self._tracked(frame, res, _kf_T_frame(res), [prev_kf])
         kf = self._new_session(frame)
         return self._done(
             frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[prev_kf, kf], is_keyframe=True)
@@ -190,16 +197,15 @@ class Tracker:
         return emitted
 
     # ----------------------------------------------------------------- internals
-    def _continuous(self, frame: Frame, res: RegistrationResult) -> bool:
-        """Whether the motion since the previous frame implied by ``res`` (a registration
-        against an older keyframe) stays within the speed limits; frames without
+    def _continuous(self, frame: Frame, kf_T_frame: torch.Tensor) -> bool:
+        """Whether the motion since the previous frame implied by ``kf_T_frame`` (from a
+        registration against an older keyframe) stays within the speed limits; frames without
         timestamps are not checked. A refusal makes the previous frame the keyframe
         (the lazy rule), whose retry starts from the identity and is not checked."""
         c = self.config
         dt = float(frame.timestamp[0]) - float(self.prev.timestamp[0])
         if not (math.isfinite(dt) and dt > 0) or (c.max_deg_per_s is None and c.max_mm_per_s is None):
             return True
-        kf_T_frame = torch.linalg.inv(res.tar_T_ref[0].to(torch.float64).cpu())
         rot, trans = pose_error(self.kf_T_prev[None], kf_T_frame[None])
         ok = (c.max_deg_per_s is None or float(rot) <= c.max_deg_per_s * dt) and \
             (c.max_mm_per_s is None or float(trans) <= c.max_mm_per_s * dt)
@@ -209,8 +215,8 @@ class Tracker:
     def _new_session(self, frame: Frame) -> Keyframe:
         return self._make_keyframe(frame, True, _eye())
 
-    def _tracked(self, frame: Frame, res: RegistrationResult, emitted: list[Keyframe]) -> TrackStep:
-        kf_T_frame = torch.linalg.inv(res.tar_T_ref[0].to(torch.float64).cpu())
+    def _tracked(self, frame: Frame, res: RegistrationResult, kf_T_frame: torch.Tensor,
+                 emitted: list[Keyframe]) -> TrackStep:
         self.kf_T_prevprev = self.kf_T_prev
         self.kf_T_prev = kf_T_frame
         self.prev_is_keyframe = False

@@ -7,7 +7,7 @@ import torch
 from tactile_slam.bench import loops
 from tactile_slam.cli.main import main
 from tactile_slam.config import Config
-from tactile_slam.loop.detector import rigid_inverse
+from tactile_slam.posegraph import se3
 
 
 def test_tracked_keyframes_carry_real_odometry():
@@ -18,7 +18,7 @@ def test_tracked_keyframes_carry_real_odometry():
     T = torch.as_tensor(obj_T, dtype=torch.float64)
     for prev, kf in zip(kfs, kfs[1:]):
         if kf.session == prev.session:  # odometry of the tracker, close to the truth on the seed
-            true = rigid_inverse(T[prev.video_index]) @ T[kf.video_index]
+            true = se3.inverse(T[prev.video_index]) @ T[kf.video_index]
             assert float((kf.prev_T_kf[:3, 3] - true[:3, 3]).norm()) < 2e-4
         assert kf.frame.gradients.shape[0] == 1 and kf.frame.gradients.is_contiguous()
 

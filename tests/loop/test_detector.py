@@ -11,7 +11,8 @@ import torch
 
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import Frame
-from tactile_slam.loop.detector import Loop, LoopDetector, LoopError, rigid_inverse
+from tactile_slam.loop.detector import Loop, LoopDetector, LoopError
+from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import register
 from tactile_slam.registration.result import pose_error
 from tactile_slam.tracking.keyframe import Keyframe
@@ -42,7 +43,7 @@ def _detector(scene, config=None, mode=None, ids=(0, 1, 2, 3)):
 
 
 def _loop_error(loop: Loop, tar_T_ref: torch.Tensor):
-    rot, trans = pose_error(loop.ref_T_tar[None], rigid_inverse(tar_T_ref)[None])
+    rot, trans = pose_error(loop.ref_T_tar[None], se3.inverse(tar_T_ref)[None])
     return float(rot), float(trans)
 
 
@@ -129,9 +130,9 @@ def test_verification_uses_the_query_as_reference(scene):
     refs = [scene[0], scene[1]]
     init = torch.stack([T_LOOP, EYE])
     got = det.verify(scene[2], refs, init)
-    direct = register(scene[2].frame, Frame.cat([scene[0].frame, scene[1].frame]), rigid_inverse(init),
+    direct = register(scene[2].frame, Frame.cat([scene[0].frame, scene[1].frame]), se3.inverse(init),
                       det.nf_config)
-    torch.testing.assert_close(got.tar_T_ref, rigid_inverse(direct.tar_T_ref.double()), atol=1e-9, rtol=0)
+    torch.testing.assert_close(got.tar_T_ref, se3.inverse(direct.tar_T_ref.double()), atol=1e-9, rtol=0)
     torch.testing.assert_close(got.ccs, direct.ccs, equal_nan=True)
     assert got.ok.tolist() == direct.ok.tolist()
     method = register(Frame.cat([scene[0].frame, scene[1].frame]), Frame.cat([scene[2].frame] * 2), init,
@@ -145,7 +146,7 @@ def test_only_sift_mode_uses_lifted_estimate(scene):
     det = _detector(scene, mode="only_sift")
     loops = [lp for lp in det.detect(scene[2], [0, 1, 3], {}, {}, scene) if lp.ref_id == 0]
     assert len(loops) == 1 and math.isnan(loops[0].ccs) and det.stats.verified == 0
-    torch.testing.assert_close(loops[0].ref_T_tar, rigid_inverse(loops[0].init_tar_T_ref))
+    torch.testing.assert_close(loops[0].ref_T_tar, se3.inverse(loops[0].init_tar_T_ref))
     rot, trans = _loop_error(loops[0], T_LOOP)
     assert rot < 1.5 and trans < 0.5 + abs(float(T_LOOP[2, 3])) * 1e3
 
