@@ -13,7 +13,7 @@ from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import register
 from tactile_slam.registration.refine import refine_edges
 from tactile_slam.registration.result import RegistrationError, pose_error
-from tests.registration.surfaces import frames, rigid, textured
+from tests.registration.surfaces import Surface, frames, rigid, textured
 
 NF = replace(Config().normalflow, ccs_threshold=0.7)
 
@@ -69,5 +69,18 @@ def test_sample_budget_and_bad_input(scene):
         refine_edges([f[0]], [f[1]], T, NF, n_samples=0)
     with pytest.raises(RegistrationError, match="B reference"):
         refine_edges([f[0], f[0]], [f[1]], T, NF)
+    with pytest.raises(RegistrationError, match="B reference"):
+        refine_edges([f[0]], [f[1]], T[:, :3, :3], NF)  # wrong pose shape
+    with pytest.raises(RegistrationError, match="NaN"):
+        refine_edges([f[0]], [f[1]], torch.full((1, 4, 4), float("nan"), dtype=torch.float64), NF)
     empty, ok = refine_edges([], [], torch.zeros(0, 4, 4, dtype=torch.float64), NF)
     assert empty.shape == (0, 4, 4) and ok.shape == (0,)
+
+
+def test_reference_without_contact_keeps_the_measurement(scene):
+    f, truths = scene
+    lifted = frames(Surface(depth=-1e-3), [torch.eye(4, dtype=torch.float64)])  # object above the gel
+    assert not bool(lifted.contact.any())
+    T = se3.inverse(truths[:1])
+    refined, ok = refine_edges([lifted[0]], [f[1]], T, NF)
+    assert ok.tolist() == [False] and torch.equal(refined, T)

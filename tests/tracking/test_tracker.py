@@ -189,8 +189,9 @@ def test_speed_limits_scale_with_the_frame_interval_and_can_be_disabled():
     assert reg.tracker.implausible == 1 and 3 in [k.video_index for k in kfs]
 
 
-def test_frames_without_timestamps_are_not_speed_checked():
-    _, kfs, reg = run([True] * 7, slip=_slip_at_4, fps=float("inf"))  # timestamps all 0
+@pytest.mark.parametrize("fps", [float("inf"), float("nan")])  # timestamps all 0 / all NaN (unknown)
+def test_frames_without_timestamps_are_not_speed_checked(fps):
+    _, kfs, reg = run([True] * 7, slip=_slip_at_4, fps=fps)
     assert reg.tracker.implausible == 0 and [k.video_index for k in kfs] == [0, 6]
 
 
