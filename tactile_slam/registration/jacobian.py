@@ -50,9 +50,11 @@ def sobel_at(maps: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     """5x5 Sobel derivatives of a multi-channel map at selected pixels, per pixel, with
     reflect-101 borders (OpenCV's default).
 
-    On the CPU, OpenCV filters the whole image and the pixels are looked up (a 5x5
-    patch gather per pixel costs more than the filter); elsewhere
-    :func:`sobel_at_patches`. Both give the same values (tested).
+    On the CPU, OpenCV filters the bounding box of the pixels (grown by the kernel's
+    radius where the image allows, so every 5x5 window and every reflected border is the
+    full image's) and the pixels are looked up: a 5x5 patch gather per pixel costs more
+    than the filter. Elsewhere :func:`sobel_at_patches`. Both give the same values
+    (tested).
 
     Args:
         maps: ``(B, H, W, C)``.
@@ -66,11 +68,15 @@ def sobel_at(maps: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     b, h, w, ch = maps.shape
     arr = maps.detach().contiguous().numpy()
     depth = cv2.CV_64F if arr.dtype == np.float64 else cv2.CV_32F
-    at = idx.numpy()
+    rows, cols = np.divmod(idx.numpy(), w)
     out = []
     for i in range(b):
-        img = arr[i] if ch > 1 else arr[i, ..., 0]
-        d = [cv2.Sobel(img, depth, dx, 1 - dx, ksize=5, scale=1.0 / _SOBEL_GAIN).reshape(h * w, ch)[at[i]]
+        r0, r1 = max(int(rows[i].min()) - 2, 0), min(int(rows[i].max()) + 3, h)
+        c0, c1 = max(int(cols[i].min()) - 2, 0), min(int(cols[i].max()) + 3, w)
+        img = arr[i, r0:r1, c0:c1]
+        img = img if ch > 1 else img[..., 0]
+        at = (rows[i] - r0) * (c1 - c0) + cols[i] - c0
+        d = [cv2.Sobel(img, depth, dx, 1 - dx, ksize=5, scale=1.0 / _SOBEL_GAIN).reshape(-1, ch)[at]
              for dx in (1, 0)]
         out.append(np.stack(d, axis=-1))
     return torch.from_numpy(np.stack(out)).to(maps.dtype)
@@ -110,29 +116,28 @@ def sobel_at_patches(maps: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
     return out.T.reshape(b, idx.shape[1], ch, 2)
 
 
-def jacobian_analytic(points: torch.Tensor, normals: torch.Tensor, dn: torch.Tensor) -> torch.Tensor:
-    """Closed-form ``J_k = D_k Jw_k + [[n_k]x | 0]``.
+def jacobian_analytic(points_t: torch.Tensor, normals_t: torch.Tensor, dn_t: torch.Tensor) -> torch.Tensor:
+    """Closed-form ``J_k = D_k Jw_k + [[n_k]x | 0]``, channels first (the layout the
+    Gauss-Newton products read, so no transpose is needed).
 
     Args:
-        points: ``(..., 3)`` sample points P_k in metres (reference sensor frame).
-        normals: ``(..., 3)`` reference normals n_k.
-        dn: ``(..., 3, 2)`` normal-map derivatives per metre.
+        points_t: ``(B, 3, K)`` sample points P_k in metres (reference sensor frame).
+        normals_t: ``(B, 3, K)`` reference normals n_k.
+        dn_t: ``(B, 3, 2, K)`` normal-map derivatives per metre (channel, x/y, sample).
 
     Returns:
-        ``(..., 3, 5)`` d residual / d (wx, wy, wz, tx, ty).
+        ``(B, 5, 3, K)``: d residual channel / d (wx, wy, wz, tx, ty), per sample.
     """
-    px, py, pz = points.unbind(-1)
-    zero = torch.zeros_like(px)
-    dx, dy = dn[..., 0:1], dn[..., 1:2]  # (..., 3, 1)
-    # D Jw with Jw rows x: [0, Pz, -Py, 1, 0] and y: [-Pz, 0, Px, 0, 1], elementwise
-    rot_x = torch.stack([zero, pz, -py], -1).unsqueeze(-2)  # (..., 1, 3)
-    rot_y = torch.stack([-pz, zero, px], -1).unsqueeze(-2)
-    nx, ny, nz = normals.unbind(-1)
-    skew = torch.stack(
-        [torch.stack([zero, -nz, ny], -1), torch.stack([nz, zero, -nx], -1), torch.stack([-ny, nx, zero], -1)],
-        dim=-2,
-    )  # [n]x, (..., 3, 3)
-    return torch.cat([dx * rot_x + dy * rot_y + skew, dx, dy], dim=-1)
+    px, py, pz = (x.unsqueeze(1) for x in points_t.unbind(1))  # (B, 1, K)
+    nx, ny, nz = normals_t.unbind(1)
+    dx, dy = dn_t.unbind(2)  # (B, 3, K)
+    zero = torch.zeros_like(nx)
+    # D Jw with Jw rows x: [0, Pz, -Py, 1, 0] and y: [-Pz, 0, Px, 0, 1], plus the
+    # columns of [n]x = [[0, -nz, ny], [nz, 0, -nx], [-ny, nx, 0]]
+    j0 = torch.stack([zero, nz, -ny], 1) - dy * pz
+    j1 = torch.stack([-nz, zero, nx], 1) + dx * pz
+    j2 = torch.stack([ny, -nx, zero], 1) + dy * px - dx * py
+    return torch.stack([j0, j1, j2, dx, dy], 1)
 
 
 def _linearised_residual(delta: torch.Tensor, point: torch.Tensor, normal: torch.Tensor, dn: torch.Tensor):
@@ -142,13 +147,13 @@ def _linearised_residual(delta: torch.Tensor, point: torch.Tensor, normal: torch
     return rot.transpose(0, 1) @ (normal + dn @ (moved[:2] - point[:2]))
 
 
-def jacobian_autograd(points: torch.Tensor, normals: torch.Tensor, dn: torch.Tensor) -> torch.Tensor:
+def jacobian_autograd(points_t: torch.Tensor, normals_t: torch.Tensor, dn_t: torch.Tensor) -> torch.Tensor:
     """Same as :func:`jacobian_analytic`, by reverse-mode autograd (``torch.func``),
     vectorised over samples. Shapes as there."""
-    lead = points.shape[:-1]
-    p = points.reshape(-1, 3)
-    n = normals.reshape(-1, 3)
-    d = dn.reshape(-1, 3, 2)
-    zero = torch.zeros(5, dtype=points.dtype, device=points.device)
-    jac = vmap(jacrev(_linearised_residual), in_dims=(None, 0, 0, 0))(zero, p, n, d)
-    return jac.reshape(*lead, 3, 5)
+    b, _, k = points_t.shape
+    p = points_t.mT.reshape(-1, 3)
+    n = normals_t.mT.reshape(-1, 3)
+    d = dn_t.permute(0, 3, 1, 2).reshape(-1, 3, 2)
+    zero = torch.zeros(5, dtype=points_t.dtype, device=points_t.device)
+    jac = vmap(jacrev(_linearised_residual), in_dims=(None, 0, 0, 0))(zero, p, n, d)  # (B K, 3, 5)
+    return jac.view(b, k, 3, 5).permute(0, 3, 2, 1)

@@ -41,7 +41,7 @@ class Level:
         normals_t: ``(B, 3, K)`` reference normals n_k at this level, channels first.
         jacobian_t: ``(B, 5, 3K)`` J^T in the working dtype, columns channel-major (all
             x rows of J, then all y rows, then all z rows), matching flattened
-            ``(B, 3, K)`` residuals.
+            ``(B, 3, K)`` residuals; zero for padding.
         jtj: ``(B, K, 25)`` float64 per-sample ``J_k^T J_k`` (zero for padding).
         ata_full: ``(B, 5, 5)`` float64 ``sum_k J_k^T J_k``; an iteration subtracts the
             samples it does not share.
@@ -133,15 +133,30 @@ def metric_points(height: torch.Tensor, idx: torch.Tensor, m_per_px: float) -> t
     return torch.stack([c - (w - 1) / 2.0, r - (h - 1) / 2.0, z], dim=-1) * m_per_px
 
 
-def _level(points, normals, dn, valid, factor, jacobian) -> Level:
-    """Jacobian rows and the full normal matrix for normals ``(B, K, 3)`` and their
-    derivatives per metre ``(B, K, 3, 2)``, in the dtype of ``points``."""
+def _level(points_t, normals_t, dn_t, valid, factor, jacobian) -> Level:
+    """Jacobian rows and normal matrices for points and normals ``(B, 3, K)`` and the
+    normals' derivatives per metre ``(B, 3, 2, K)``, in the dtype of ``points_t``.
+    The normal matrices are built from the Jacobian rounded to that dtype, the values
+    the right-hand sides use."""
     b, k = valid.shape
-    jac = JACOBIANS[jacobian](points.double(), normals.double(), dn.double())
-    jac = jac * valid[..., None, None]  # (B, K, 3, 5)
-    jtj = (jac.mT @ jac).view(b, k, 25)
-    jac_t = jac.permute(0, 3, 2, 1).reshape(b, 5, 3 * k)  # columns channel-major
-    return Level(normals.transpose(1, 2).contiguous(), jac_t.to(points.dtype), jtj, jtj.sum(1).view(b, 5, 5), factor)
+    jac = JACOBIANS[jacobian](points_t.double(), normals_t.double(), dn_t.double())  # (B, 5, 3, K)
+    jac_t = (jac * valid[:, None, None]).to(points_t.dtype).reshape(b, 5, 3 * k)  # columns channel-major
+    j64 = jac_t.double()
+    return Level(normals_t.contiguous(), jac_t, _outer_products(j64.view(b, 5, 3, k)), torch.bmm(j64, j64.mT), factor)
+
+
+def _outer_products(jac: torch.Tensor, chunk_samples: int = 8192) -> torch.Tensor:
+    """Per-sample ``J_k^T J_k`` of a channels-first Jacobian: ``(B, 5, 3, K)`` ->
+    ``(B, K, 25)``. Elementwise over the contiguous sample axis (several times faster
+    than a batched product of 3x5 matrices), a few references at a time so the
+    intermediate stays in cache."""
+    b, _, _, k = jac.shape
+    out = torch.empty((b, k, 25), dtype=jac.dtype, device=jac.device)
+    step = max(1, chunk_samples // max(k, 1))
+    for i in range(0, b, step):
+        j = jac[i:i + step]
+        out[i:i + step] = sum(j[:, :, None, c] * j[:, None, :, c] for c in range(3)).view(-1, 25, k).mT
+    return out
 
 
 def _coarse_level(normals_map, points, valid, s, factor, jacobian) -> Level:
@@ -155,10 +170,10 @@ def _coarse_level(normals_map, points, valid, s, factor, jacobian) -> Level:
     padded = F.pad(pooled.reshape(b * 3, 1, *pooled.shape[2:]), (2, 2, 2, 2), mode="reflect")
     sob = F.conv2d(padded, kernels).reshape(b, 6, *pooled.shape[2:])  # (x-deriv, y-deriv) per channel
     grid = points[..., :2] * torch.as_tensor(_grid_scale((h, w), s, False), dtype=points.dtype, device=points.device)
-    normals = _sample(pooled, grid, "bilinear", False).transpose(1, 2)
-    dn = _sample(sob, grid, "bilinear", False).transpose(1, 2).reshape(b, -1, 3, 2) / (factor * s)
-    vf = valid.to(normals.dtype)[..., None]
-    return _level(points, normals * vf, dn * vf[..., None], valid, factor, jacobian)
+    vf = valid.to(points.dtype)[:, None]
+    normals_t = _sample(pooled, grid, "bilinear", False) * vf  # (B, 3, K)
+    dn_t = _sample(sob, grid, "bilinear", False).view(b, 3, 2, -1) * (vf[:, None] / (factor * s))
+    return _level(points.mT, normals_t, dn_t, valid, factor, jacobian)
 
 
 def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype: torch.dtype | None = None
@@ -190,7 +205,8 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     curv = ref.curvature.to(dtype).reshape(b, -1).gather(1, idx) * vf
     levels = [_coarse_level(normals_map, points, valid, s, f, config.jacobian)
               for f in sorted(config.coarse_factors, reverse=True)]
-    levels.append(_level(points, normals, sobel_at(normals_map, idx) / s, valid, 1, config.jacobian))
+    dn_t = sobel_at(normals_map, idx).permute(0, 2, 3, 1) / s  # (B, 3, 2, K)
+    levels.append(_level(points.mT, normals.mT, dn_t, valid, 1, config.jacobian))
     return PreparedReference(points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s)
 
 
@@ -320,22 +336,23 @@ def _linearise(pairs: _Pairs, motion: torch.Tensor, align_corners: bool) -> tupl
         motion: ``(b, 5, 4)`` poses packed by :func:`_motion`.
 
     Returns:
-        ``ata (b, 5, 5)``, ``atb (b, 5)`` (float64) and the shared-sample count ``(b,)``.
+        ``ata (b, 5, 5)`` float64, ``atb (b, 5)`` in the working dtype (accumulated by
+        one product; the host widens it) and the shared-sample count ``(b,)``.
     """
     b, k = motion.shape[0], pairs.points_t.shape[2]
     grid = torch.baddbmm(motion[:, :2, 3:], motion[:, :2, :3], pairs.points_t.expand(b, -1, -1)).mT  # (b, K, 2)
     near = _sample(pairs.c_map, grid, "nearest", align_corners).view(b, k)
     shared = (near > 0.5) & _inside(grid) & pairs.valid
     res = torch.bmm(motion[:, 2:, :3], _sample(pairs.n_map, grid, "bilinear", align_corners)) - pairs.normals_t
-    atb = _bmv(pairs.jacobian_t, (res * shared.unsqueeze(1)).view(b, 3 * k)).double()
+    atb = _bmv(pairs.jacobian_t, (res * shared.unsqueeze(1)).view(b, 3 * k))
     return _shared_normal_matrix(pairs, shared), atb, shared.sum(1)
 
 
-def _motion(rot: np.ndarray, txy: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Pack the poses for :func:`_linearise`: ``(b, 5, 4)`` with ``[:2, :3]`` taking a
-    metric point to grid coordinates (``R[:2] * scale``), ``[:2, 3]`` the grid offset
-    ``txy * scale`` and ``[2:, :3]`` the rotation's transpose ``R^T``."""
-    out = np.zeros((len(rot), 5, 4))
+def _motion(rot: np.ndarray, txy: np.ndarray, scale: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """Pack the poses for :func:`_linearise`: ``(b, 5, 4)`` in ``dtype`` with ``[:2, :3]``
+    taking a metric point to grid coordinates (``R[:2] * scale``), ``[:2, 3]`` the grid
+    offset ``txy * scale`` and ``[2:, :3]`` the rotation's transpose ``R^T``."""
+    out = np.zeros((len(rot), 5, 4), dtype=dtype)
     out[:, :2, :3] = rot[:, :2] * scale[:, None]
     out[:, :2, 3] = txy * scale
     out[:, 2:, :3] = rot.transpose(0, 2, 1)
@@ -362,11 +379,13 @@ def _gauss_newton(st: _State, pairs: _Pairs, scale: np.ndarray, align_corners: b
     if len(ids) < len(st.active):
         pairs = pairs.take(ids)
     cur, ridge = st.take(ids), _ridge(pairs.ata_full)
-    dev, dt = pairs.points_t.device, pairs.points_t.dtype
+    dev = pairs.points_t.device
+    host_dt = torch.empty((), dtype=pairs.points_t.dtype).numpy().dtype
     tol2 = (np.array([config.rot_tol, config.trans_tol_m]) * tol_scale) ** 2
     for i in range(max_iters):
-        motion = torch.from_numpy(_motion(cur.rot, cur.txy, scale)).to(device=dev, dtype=dt)
+        motion = torch.from_numpy(_motion(cur.rot, cur.txy, scale, host_dt)).to(dev)
         ata, atb, n_shared = (x.cpu().numpy() for x in _linearise(pairs, motion, align_corners))
+        atb = atb.astype(np.float64)
         cur.ata = ata
         delta, solved = _solve(ata, atb, ridge, config.lm_damping)
         # too few shared samples, or an unsolvable step: lost (the pose stays as it was)
@@ -425,19 +444,9 @@ def register_prepared(
         raise RegistrationError(f"target scale {tar.mm_per_px} mm/px differs from the reference's")
     _check_finite(tar, "target")
     dev, dt = prep.device, prep.dtype
-    if init_tar_T_ref is None:
-        init_tar_T_ref = torch.eye(4, dtype=torch.float64, device=dev)
-    init = torch.as_tensor(init_tar_T_ref, dtype=torch.float64, device=dev)
-    if init.ndim == 2:
-        init = init.unsqueeze(0)
-    if init.shape[1:] != (4, 4) or init.shape[0] not in (1, b):
-        raise RegistrationError(f"init_tar_T_ref must be (B, 4, 4) or (4, 4), got {tuple(init_tar_T_ref.shape)}")
-    if not bool(torch.isfinite(init).all()):
-        raise RegistrationError("init_tar_T_ref contains NaN or Inf")
-
+    init = np.eye(4)[None] if init_tar_T_ref is None else _host_init(init_tar_T_ref, b)
     n_map = tar.normals.to(device=dev, dtype=dt).permute(0, 3, 1, 2)  # a view: no copy
     c_map = tar.contact.to(device=dev, dtype=dt).unsqueeze(1)
-    init = init.cpu().numpy()
     flags = np.zeros(b, dtype=bool)
     st = _State(np.broadcast_to(init[:, :3, :3], (b, 3, 3)).copy(), np.broadcast_to(init[:, :2, 3], (b, 2)).copy(),
                 ~flags, flags.copy(), flags.copy(), np.zeros(b, dtype=np.int64), np.zeros((b, 5, 5)))
@@ -452,12 +461,23 @@ def register_prepared(
             st.active, st.converged = ~st.lost, np.zeros_like(st.lost)
         else:
             st = _gauss_newton(st, pairs, scale, True, config, config.max_iters, config.min_iters, 1.0)
-    T = torch.eye(4, dtype=torch.float64).repeat(b, 1, 1)
-    T[:, :3, :3] = torch.from_numpy(st.rot)
-    T[:, :2, 3] = torch.from_numpy(st.txy)
+    T = np.zeros((b, 4, 4))
+    T[:, :3, :3], T[:, :2, 3], T[:, 3, 3] = st.rot, st.txy, 1.0
     h_map = tar.height.to(device=dev, dtype=dt).unsqueeze(1)
     maps = (h_map, tar.curvature.to(device=dev, dtype=dt).unsqueeze(1), c_map)
-    return _finish(prep, maps, T.to(dev), st, config, torch.as_tensor(scale, dtype=dt, device=dev))
+    return _finish(prep, maps, torch.from_numpy(T).to(dev), st, config, torch.as_tensor(scale, dtype=dt, device=dev))
+
+
+def _host_init(init_tar_T_ref, b: int) -> np.ndarray:
+    """A user's initial poses as host float64 ``(1 or b, 4, 4)``, checked."""
+    init = torch.as_tensor(init_tar_T_ref, dtype=torch.float64).detach().cpu().numpy()
+    if init.ndim == 2:
+        init = init[None]
+    if init.shape[1:] != (4, 4) or init.shape[0] not in (1, b):
+        raise RegistrationError(f"init_tar_T_ref must be (B, 4, 4) or (4, 4), got {tuple(init_tar_T_ref.shape)}")
+    if not np.isfinite(init).all():
+        raise RegistrationError("init_tar_T_ref contains NaN or Inf")
+    return init
 
 
 def _finish(prep: PreparedReference, maps, T: torch.Tensor, st: _State, config: NormalFlowConfig,
@@ -487,12 +507,12 @@ def _finish(prep: PreparedReference, maps, T: torch.Tensor, st: _State, config: 
     ccs = (l_ref * l_tar * shf).sum(1) / torch.sqrt((l_ref.square() * shf).sum(1) * (l_tar.square() * shf).sum(1))
     # degenerate: eigenvalue ratio of the normal equations, translations scaled by the
     # samples' RMS spread so that both parts measure displacement
-    sc = torch.ones((b, 5), dtype=torch.float64, device=T.device)
-    sc[:, 3:] = prep.spread[:, None]
-    eig = torch.linalg.eigvalsh(torch.from_numpy(st.ata).to(T.device) * sc[:, :, None] * sc[:, None, :])
-    degenerate = ~(eig[:, 0] > config.degenerate_eig * eig[:, -1])
+    sc = np.ones((b, 5))
+    sc[:, 3:] = prep.spread.cpu().numpy()[:, None]
+    eig = np.linalg.eigvalsh(st.ata * sc[:, :, None] * sc[:, None, :])
+    degenerate = ~(eig[:, 0] > config.degenerate_eig * eig[:, -1])  # NaN counts as degenerate
     flags = {name: torch.from_numpy(getattr(st, name)).to(T.device) for name in ("lost", "converged", "iterations")}
-    ok = ~flags["lost"] & tz_ok & ~degenerate
+    ok = ~(flags["lost"] | torch.from_numpy(degenerate).to(T.device)) & tz_ok
     if config.check_scores:
         ok &= (ccs >= config.ccs_threshold) & (scr >= config.scr_threshold)
     return RegistrationResult(tar_T_ref=T, ccs=ccs, scr=scr, n_shared=shf.sum(1).long(), iterations=flags["iterations"],

@@ -23,6 +23,12 @@ def mask_to_indices(mask: torch.Tensor, k: int | None = None) -> tuple[torch.Ten
         ``(idx (B, K) int64, valid (B, K) bool)``; padding has index 0, valid False.
     """
     b, n = mask.shape
+    if b == 1 and k is None:  # one row: a plain nonzero (the general path costs ~4x more)
+        idx = mask[0].nonzero()[:, 0]
+        if len(idx) == 0:
+            return torch.zeros((1, 1), dtype=torch.int64, device=mask.device), torch.zeros((1, 1), dtype=torch.bool,
+                                                                                           device=mask.device)
+        return idx[None], torch.ones((1, len(idx)), dtype=torch.bool, device=mask.device)
     count = mask.sum(dim=1)
     if k is None:
         k = max(int(count.max()) if b else 0, 1)
@@ -108,8 +114,10 @@ def select_samples(
         return mask_to_indices(c)
     if n_samples < 1:
         raise ValueError(f"n_samples must be >= 1 or None, got {n_samples}")
-    if rule == "topk":
-        return top_k_indices(torch.where(c, a, -1.0), n_samples)
+    if rule == "topk":  # over the contact pixels only (a few thousand of the image's pixels)
+        pixel, inside = mask_to_indices(c)
+        pos, valid = top_k_indices(torch.where(inside, a.gather(1, pixel), -1.0), n_samples)
+        return pixel.gather(1, pos), valid
     if rule == "random":
         r = torch.rand(a.shape, generator=generator, dtype=torch.float64).to(a.device)
         return top_k_indices(torch.where(c, r, -1.0), n_samples)

@@ -46,10 +46,11 @@ def test_sobel_at_matches_opencv_including_borders(device, dtype, fn):
 
 
 def _random_inputs(n=64, seed=0, device="cpu"):
+    """Channels-first points, normals ``(2, 3, n)`` and derivatives ``(2, 3, 2, n)``."""
     g = torch.Generator().manual_seed(seed)
-    p = (torch.rand((2, n, 3), generator=g, dtype=torch.float64) - 0.5) * 1e-2
-    nrm = torch.nn.functional.normalize(torch.rand((2, n, 3), generator=g, dtype=torch.float64) + 0.5, dim=-1)
-    d = torch.randn((2, n, 3, 2), generator=g, dtype=torch.float64) * 300.0
+    p = (torch.rand((2, 3, n), generator=g, dtype=torch.float64) - 0.5) * 1e-2
+    nrm = torch.nn.functional.normalize(torch.rand((2, 3, n), generator=g, dtype=torch.float64) + 0.5, dim=1)
+    d = torch.randn((2, 3, 2, n), generator=g, dtype=torch.float64) * 300.0
     return p.to(device), nrm.to(device), d.to(device)
 
 
@@ -57,8 +58,31 @@ def test_autograd_equals_analytic(device):
     p, n, d = _random_inputs(device=device)
     ja = jacobian_analytic(p, n, d)
     jg = jacobian_autograd(p, n, d)
-    assert ja.shape == jg.shape == (2, 64, 3, 5)
+    assert ja.shape == jg.shape == (2, 5, 3, 64)
     assert torch.allclose(ja, jg, atol=1e-10, rtol=1e-10)
+
+
+def test_analytic_matches_the_closed_form_per_sample():
+    """J = D Jw + [n]x | 0, written out with numpy for one sample (method.md 4.3)."""
+    p, n, d = _random_inputs(n=5)
+    P, N, D = p[1, :, 3].numpy(), n[1, :, 3].numpy(), d[1, :, :, 3].numpy()
+    jw = np.array([[0, P[2], -P[1], 1, 0], [-P[2], 0, P[0], 0, 1]])
+    skew = np.array([[0, -N[2], N[1]], [N[2], 0, -N[0]], [-N[1], N[0], 0]])
+    expected = D @ jw + np.hstack([skew, np.zeros((3, 2))])
+    assert np.allclose(jacobian_analytic(p, n, d)[1, :, :, 3].numpy().T, expected, atol=1e-12)
+
+
+def test_sobel_at_filters_only_the_pixels_neighbourhood():
+    """Pixels away from every border: the cropped filter equals the full image's."""
+    g = torch.Generator().manual_seed(1)
+    maps = torch.rand((1, 40, 50, 3), generator=g, dtype=torch.float64)
+    idx = torch.tensor([[10 * 50 + 12, 11 * 50 + 30, 20 * 50 + 47, 37 * 50 + 13]])  # near the right/bottom edge too
+    got = sobel_at(maps, idx)
+    ref = sobel_at_patches(maps, idx)
+    assert torch.allclose(got, ref, atol=1e-12)
+    img = maps[0, :, :, 1].numpy()
+    dy = cv2.Sobel(img, cv2.CV_64F, 0, 1, ksize=5, scale=2**-7).ravel()[idx[0].numpy()]
+    assert np.allclose(got[0, :, 1, 1].numpy(), dy, atol=1e-12)
 
 
 def test_analytic_gradcheck():
