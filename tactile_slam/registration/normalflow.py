@@ -461,11 +461,8 @@ def register_prepared(
             st.active, st.converged = ~st.lost, np.zeros_like(st.lost)
         else:
             st = _gauss_newton(st, pairs, scale, True, config, config.max_iters, config.min_iters, 1.0)
-    T = np.zeros((b, 4, 4))
-    T[:, :3, :3], T[:, :2, 3], T[:, 3, 3] = st.rot, st.txy, 1.0
-    h_map = tar.height.to(device=dev, dtype=dt).unsqueeze(1)
-    maps = (h_map, tar.curvature.to(device=dev, dtype=dt).unsqueeze(1), c_map)
-    return _finish(prep, maps, torch.from_numpy(T).to(dev), st, config, torch.as_tensor(scale, dtype=dt, device=dev))
+    maps = (tar.height.to(device=dev, dtype=dt).unsqueeze(1), tar.curvature.to(device=dev, dtype=dt).unsqueeze(1), c_map)
+    return _finish(prep, maps, st, config, scale)
 
 
 def _host_init(init_tar_T_ref, b: int) -> np.ndarray:
@@ -480,43 +477,54 @@ def _host_init(init_tar_T_ref, b: int) -> np.ndarray:
     return init
 
 
-def _finish(prep: PreparedReference, maps, T: torch.Tensor, st: _State, config: NormalFlowConfig,
-            scale: torch.Tensor) -> RegistrationResult:
+def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig, scale: np.ndarray
+            ) -> RegistrationResult:
     """tz from the height difference, CCS/SCR, degeneracy, and the ok flag.
 
-    ``maps``: the targets' ``(B, 1, H, W)`` height, curvature and contact; ``T``
-    ``(B, 4, 4)`` float64 with tz still 0 (set here)."""
-    b, k = T.shape[0], prep.points.shape[1]
-    valid, dt = prep.valid, prep.dtype  # batch B or 1
+    ``maps``: the targets' ``(B, 1, H, W)`` height, curvature and contact; the poses are
+    ``st.rot``, ``st.txy`` (tz is set here). The samples are taken on the maps' device in
+    one pass; the reductions over them run on the host in float64."""
+    b, k = len(st.rot), prep.points_t.shape[2]
     h_map, l_map, c_map = maps
-    moved = torch.bmm(T[:, :3, :3].to(dt), prep.points_t.expand(b, -1, -1))  # (B, 3, K); tz is 0
-    grid = ((moved[:, :2] + T[:, :2, 3:].to(dt)) * scale[:, None]).mT
-    inside = _inside(grid) & valid
-    # tz: mean of s*H_tar - (R P)_z over samples landing in the target contact (nearest)
-    vz = ((_sample(c_map, grid, "nearest").view(b, k) > 0.5) & inside).double()
-    n_z = vz.sum(1)
-    h_tar = _sample(h_map, grid, "bilinear").view(b, k).double()
-    dz = (h_tar * prep.m_per_px - moved[:, 2].double()) * vz
-    tz_ok = n_z > 0
-    T[:, 2, 3] = torch.where(tz_ok, dz.sum(1) / n_z.clamp_min(1.0), torch.zeros_like(n_z))
-    # CCS and SCR over the samples landing in the target contact (bilinear)
-    shf = ((_sample(c_map, grid, "bilinear").view(b, k) > 0.5) & inside).double()
-    l_tar = _sample(l_map, grid, "bilinear").view(b, k).double()
-    l_ref = prep.curvature.double()
-    scr = (l_ref.abs() * shf).sum(1) / l_ref.abs().sum(1)
-    ccs = (l_ref * l_tar * shf).sum(1) / torch.sqrt((l_ref.square() * shf).sum(1) * (l_tar.square() * shf).sum(1))
+    host_dt = torch.empty((), dtype=prep.dtype).numpy().dtype
+    pack = np.zeros((b, 3, 4), dtype=host_dt)  # rows: grid x, grid y, (R P)_z
+    pack[:, :2, :3] = st.rot[:, :2] * scale[:, None]
+    pack[:, :2, 3] = st.txy * scale
+    pack[:, 2, :3] = st.rot[:, 2]
+    pack = torch.from_numpy(pack).to(prep.device)
+    proj = torch.baddbmm(pack[:, :, 3:], pack[:, :, :3], prep.points_t.expand(b, -1, -1))  # (B, 3, K)
+    grid = proj[:, :2].mT
+    inside = (_inside(grid) & prep.valid).unsqueeze(1)
+    rows = torch.cat([_sample(c_map, grid, "nearest"), _sample(h_map, grid, "bilinear"),
+                      _sample(c_map, grid, "bilinear"), _sample(l_map, grid, "bilinear"), proj[:, 2:], inside], 1)
+    near, h_tar, c_tar, l_tar, z, inside = rows.cpu().numpy().astype(np.float64).transpose(1, 0, 2)  # (B, K) each
+    inside = inside > 0.5
+    l_ref = prep.curvature.cpu().numpy().astype(np.float64)  # (B or 1, K)
+    with np.errstate(divide="ignore", invalid="ignore"):  # undefined scores are NaN and fail below
+        # tz: mean of s*H_tar - (R P)_z over samples landing in the target contact (nearest)
+        vz = (near > 0.5) & inside
+        n_z = vz.sum(1)
+        tz_ok = n_z > 0
+        tz = np.where(tz_ok, np.where(vz, h_tar * prep.m_per_px - z, 0.0).sum(1) / np.maximum(n_z, 1), 0.0)
+        # CCS and SCR over the samples landing in the target contact (bilinear)
+        shf = (c_tar > 0.5) & inside
+        scr = (np.abs(l_ref) * shf).sum(1) / np.abs(l_ref).sum(1)
+        ccs = (l_ref * l_tar * shf).sum(1) / np.sqrt((l_ref ** 2 * shf).sum(1) * (l_tar ** 2 * shf).sum(1))
     # degenerate: eigenvalue ratio of the normal equations, translations scaled by the
     # samples' RMS spread so that both parts measure displacement
     sc = np.ones((b, 5))
     sc[:, 3:] = prep.spread.cpu().numpy()[:, None]
     eig = np.linalg.eigvalsh(st.ata * sc[:, :, None] * sc[:, None, :])
     degenerate = ~(eig[:, 0] > config.degenerate_eig * eig[:, -1])  # NaN counts as degenerate
-    flags = {name: torch.from_numpy(getattr(st, name)).to(T.device) for name in ("lost", "converged", "iterations")}
-    ok = ~(flags["lost"] | torch.from_numpy(degenerate).to(T.device)) & tz_ok
+    ok = ~st.lost & ~degenerate & tz_ok
     if config.check_scores:
         ok &= (ccs >= config.ccs_threshold) & (scr >= config.scr_threshold)
-    return RegistrationResult(tar_T_ref=T, ccs=ccs, scr=scr, n_shared=shf.sum(1).long(), iterations=flags["iterations"],
-                              converged=flags["converged"], ok=ok)
+    T = np.zeros((b, 4, 4))
+    T[:, :3, :3], T[:, :2, 3], T[:, 2, 3], T[:, 3, 3] = st.rot, st.txy, tz, 1.0
+    out = dict(tar_T_ref=T, ccs=ccs, scr=scr, n_shared=shf.sum(1).astype(np.int64), iterations=st.iterations,
+               converged=st.converged, ok=ok)
+    return RegistrationResult(**{name: torch.from_numpy(np.ascontiguousarray(v)).to(prep.device)
+                                 for name, v in out.items()})
 
 
 def register(

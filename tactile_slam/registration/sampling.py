@@ -62,9 +62,10 @@ def top_k_mask(score: torch.Tensor, k: int) -> torch.Tensor:
 
 def top_k_indices(score: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Row-major indices of the :func:`top_k_mask` selection, padded like
-    :func:`mask_to_indices` (to the largest row count). One ``topk`` and a sort of
-    ``k`` indices; rows where ``topk`` took a different member of a tie at the k-th
-    value fall back to the mask.
+    :func:`mask_to_indices` (to the largest row count). One ``topk``, its members
+    marked in a mask and read back in row-major order (cheaper than sorting them);
+    rows where ``topk`` took a different member of a tie at the k-th value fall back
+    to :func:`top_k_mask`.
 
     ``(B, N)`` -> ``(idx (B, K) int64, valid (B, K) bool)``.
     """
@@ -74,10 +75,7 @@ def top_k_indices(score: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tens
     unfair = ((score == kth).sum(1) > (vals == kth).sum(1)) & (kth[:, 0] >= 0)
     if bool(unfair.any()):
         return mask_to_indices(top_k_mask(score, k))
-    ids = torch.where(vals >= 0, ids, n).sort(1).values  # unselected (negative) last
-    valid = ids < n
-    width = max(int(valid.sum(1).max()), 1)
-    return torch.where(valid, ids, 0)[:, :width], valid[:, :width]
+    return mask_to_indices(torch.zeros_like(score, dtype=torch.bool).scatter_(1, ids, vals >= 0))
 
 
 def select_samples(
