@@ -345,7 +345,7 @@ def _linearise(pairs: _Pairs, motion: torch.Tensor, align_corners: bool) -> tupl
     shared = (near > 0.5) & _inside(grid) & pairs.valid
     res = torch.bmm(motion[:, 2:, :3], _sample(pairs.n_map, grid, "bilinear", align_corners)) - pairs.normals_t
     atb = _bmv(pairs.jacobian_t, (res * shared.unsqueeze(1)).view(b, 3 * k))
-    return _shared_normal_matrix(pairs, shared), atb, shared.sum(1)
+    return _shared_normal_matrix(pairs, shared), atb, shared.sum(1, dtype=torch.int32)
 
 
 def _motion(rot: np.ndarray, txy: np.ndarray, scale: np.ndarray, dtype: np.dtype) -> np.ndarray:

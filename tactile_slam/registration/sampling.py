@@ -23,22 +23,25 @@ def mask_to_indices(mask: torch.Tensor, k: int | None = None) -> tuple[torch.Ten
         ``(idx (B, K) int64, valid (B, K) bool)``; padding has index 0, valid False.
     """
     b, n = mask.shape
+    dev = mask.device
     if b == 1 and k is None:  # one row: a plain nonzero (the general path costs ~4x more)
         idx = mask[0].nonzero()[:, 0]
         if len(idx) == 0:
-            return torch.zeros((1, 1), dtype=torch.int64, device=mask.device), torch.zeros((1, 1), dtype=torch.bool,
-                                                                                           device=mask.device)
-        return idx[None], torch.ones((1, len(idx)), dtype=torch.bool, device=mask.device)
-    count = mask.sum(dim=1)
-    if k is None:
-        k = max(int(count.max()) if b else 0, 1)
+            return torch.zeros((1, 1), dtype=torch.int64, device=dev), torch.zeros((1, 1), dtype=torch.bool, device=dev)
+        return idx[None], torch.ones((1, len(idx)), dtype=torch.bool, device=dev)
     rows, cols = mask.nonzero(as_tuple=True)  # row-major order
-    pos = torch.arange(len(rows), device=mask.device) - (count.cumsum(0) - count)[rows]
-    keep = pos < k
-    idx = torch.zeros((b, k), dtype=torch.int64, device=mask.device)
-    idx[rows[keep], pos[keep]] = cols[keep]
-    valid = torch.arange(k, device=mask.device)[None, :] < count.clamp(max=k)[:, None]
-    return idx, valid
+    count = torch.bincount(rows, minlength=b)  # a bool sum would widen the whole mask to int64
+    longest = int(count.max()) if b else 0
+    if k is None:
+        k = max(longest, 1)
+    pos = torch.arange(len(rows), device=dev) - (count.cumsum(0) - count)[rows]
+    if longest > k:  # rows longer than k keep their first k
+        keep = pos < k
+        rows, cols, pos = rows[keep], cols[keep], pos[keep]
+    idx = torch.zeros(b * k, dtype=torch.int64, device=dev)
+    idx[rows * k + pos] = cols
+    valid = torch.arange(k, device=dev)[None, :] < count.clamp(max=k)[:, None]
+    return idx.view(b, k), valid
 
 
 def top_k_mask(score: torch.Tensor, k: int) -> torch.Tensor:
@@ -72,7 +75,8 @@ def top_k_indices(score: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tens
     n = score.shape[1]
     vals, ids = torch.topk(score, min(k, n), dim=1, sorted=False)
     kth = vals.amin(1, keepdim=True)
-    unfair = ((score == kth).sum(1) > (vals == kth).sum(1)) & (kth[:, 0] >= 0)
+    ties = (score == kth).sum(1, dtype=torch.int32)  # int32: no int64 copy of the mask
+    unfair = (ties > (vals == kth).sum(1, dtype=torch.int32)) & (kth[:, 0] >= 0)
     if bool(unfair.any()):
         return mask_to_indices(top_k_mask(score, k))
     return mask_to_indices(torch.zeros_like(score, dtype=torch.bool).scatter_(1, ids, vals >= 0))
