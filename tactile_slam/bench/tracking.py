@@ -313,6 +313,9 @@ def _median_dicts(ds: list[dict]) -> dict:
     return {k: float(np.nanmedian([d.get(k, np.nan) for d in ds])) for k in keys}
 
 
+BEATS_MARGIN = 1e-9  # smallest relative rotation reduction that counts as "below"
+
+
 def targets(summary: dict) -> dict:
     """The issue's targets on the gradient-level tracking set (textured = not in
     ``LOW_TEXTURE``): NF-KF no worse than NF; GS-Offline below NF and NF-KF in
@@ -335,7 +338,8 @@ def targets(summary: dict) -> dict:
                 continue
             rows[o] = {f"rot_reduction_vs_{m}": 1.0 - gs["rot_deg"] / tab[m]["objects"][o]["rot_deg"]
                        for m in ("nf", "nf-kf") if m in tab and o in tab[m]["objects"]}
-            rows[o]["holds"] = all(v > 0 for v in rows[o].values())
+            # "below" beyond rounding: equal errors summed in another order do not count
+            rows[o]["holds"] = all(v > BEATS_MARGIN for v in rows[o].values())
         mean = {f"rot_reduction_vs_{m}": 1.0 - tab["gelslam"]["mean_over_objects"]["rot_deg"]
                 / tab[m]["mean_over_objects"]["rot_deg"] for m in ("nf", "nf-kf") if m in tab}
         out["gs_offline_beats_nf_rotation"] = {"per_object": rows, "mean_over_objects": mean, "paper_vs_nf": 0.46,

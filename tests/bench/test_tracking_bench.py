@@ -67,3 +67,23 @@ def test_tiny_run_writes_finite_report(tmp_path):
     t0 = time.perf_counter()
     path = tracking.cached_episode(tmp_path / "episodes", spec, Config())
     assert path.name == spec.name and time.perf_counter() - t0 < 2.0
+
+
+def _summary(rot: dict) -> dict:
+    """A gradient-level summary with the given rotation MAE per method and object."""
+    return {"tracking/gradients": {m: {"objects": {o: {"rot_deg": r, "trans_mm": 0.1} for o, r in per.items()},
+                                       "mean_over_objects": {"rot_deg": sum(per.values()) / len(per)},
+                                       "loops": {"episodes_with_false_loops": 0}}
+                                   for m, per in rot.items()}}
+
+
+def test_targets_need_a_real_reduction():
+    """GS-Offline equal to NF-KF up to summation order (no loop accepted) does not beat it."""
+    kf = 14.734262345
+    beats = tracking.targets(_summary({"nf": {"seed": 1.0, "knurled": 25.6}, "nf-kf": {"seed": 0.5, "knurled": kf},
+                                       "gelslam": {"seed": 0.4, "knurled": kf * (1 - 1e-16)}}))
+    got = beats["gs_offline_beats_nf_rotation"]
+    assert got["per_object"]["seed"]["holds"] and not got["per_object"]["knurled"]["holds"]
+    assert not got["holds"]
+    assert tracking.targets(_summary({"nf": {"seed": 1.0}, "nf-kf": {"seed": 0.5}, "gelslam": {"seed": 0.49}})
+                            )["gs_offline_beats_nf_rotation"]["holds"]
