@@ -514,8 +514,10 @@ def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig,
     # samples' RMS spread so that both parts measure displacement
     sc = np.ones((b, 5))
     sc[:, 3:] = prep.spread.cpu().numpy()[:, None]
-    eig = np.linalg.eigvalsh(st.ata * sc[:, :, None] * sc[:, None, :])
-    degenerate = ~(eig[:, 0] > config.degenerate_eig * eig[:, -1])  # NaN counts as degenerate
+    scaled = st.ata * sc[:, :, None] * sc[:, None, :]
+    finite = np.isfinite(scaled).all((1, 2))  # numpy's eigvalsh raises on NaN; such a pair is degenerate
+    eig = np.linalg.eigvalsh(np.where(finite[:, None, None], scaled, np.eye(5)))
+    degenerate = ~finite | ~(eig[:, 0] > config.degenerate_eig * eig[:, -1])
     ok = ~st.lost & ~degenerate & tz_ok
     if config.check_scores:
         ok &= (ccs >= config.ccs_threshold) & (scr >= config.scr_threshold)
