@@ -116,7 +116,8 @@ class BackEnd:
         self.loops: list[Loop] = []
         self.stats = BackEndStats()
         self.sessions = SessionGroups()
-        self.gate = (LoopGate(drift_model(config), config.loop.merge_min_pairs, config.loop.doubt_factor)
+        self.gate = (LoopGate(drift_model(config), config.loop.merge_min_pairs, config.loop.doubt_factor,
+                               config.loop.merge_distinct)
                      if config.loop.consistency else None)
         self._last_in_session: dict[int, int] = {}
         self._group_view = _KeyframeView(self.keyframes, self.sessions.group_of)  # -> group id

@@ -184,8 +184,10 @@ class LoopConfig:
     # back-end acceptance (tactile_slam/loop/consistency.py; docs/loops.md): a loop within a
     # group that matches the estimate within base + rate * drift path (mm of motion measured
     # by the factors between its ends) is accepted; beyond doubt_factor x that it is rejected;
-    # in between, and across groups, it waits until merge_min_pairs loops from distinct
-    # keyframes on both sides agree
+    # in between, and across groups, it waits until merge_min_pairs agreeing loops come
+    # from distinct query keyframes ("queries": separate detections) or from distinct
+    # keyframes on both sides ("both": rarely met, the coverage set often leaves one
+    # candidate keyframe per region, so sessions did not merge after contact loss)
     consistency: bool = True
     drift_base_rot_deg: float = 3.0
     drift_base_trans_mm: float = 0.5
@@ -193,6 +195,7 @@ class LoopConfig:
     drift_trans_mm_per_mm: float = 0.02
     doubt_factor: float = 5.0
     merge_min_pairs: int = 2
+    merge_distinct: str = "queries"
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
     coverage_depth_gate_mm: float | None = None  # count overlap only within this depth

@@ -151,6 +151,9 @@ class MotionGraph:
         return out
 
 
+DISTINCT = ("queries", "both")  # LoopGate's rules for independent support
+
+
 @dataclass
 class PendingLoop:
     """A verified loop between two groups, waiting for agreement.
@@ -213,16 +216,24 @@ class LoopGate:
             loops has that support too; two groups then merge.
         doubt_factor: a loop within a group farther from the estimate than this many times
             the tolerance is rejected outright (a half turn of a symmetric object, a teleport).
+        distinct: what counts as independent support: ``"queries"``, agreeing loops found by
+            ``min_pairs`` distinct query keyframes (separate detections; their candidates
+            may be one keyframe, which is all the coverage set keeps of a small region);
+            ``"both"``, distinct keyframes on both sides.
 
     The caller reports every factor it adds (:meth:`add_factor`) and calls :meth:`select`
     once per keyframe with its verified loops, after the keyframe's node and odometry are in.
     """
 
-    def __init__(self, model: DriftModel, min_pairs: int = 2, doubt_factor: float = 5.0) -> None:
+    def __init__(self, model: DriftModel, min_pairs: int = 2, doubt_factor: float = 5.0,
+                 distinct: str = "both") -> None:
         if min_pairs < 1 or doubt_factor < 1.0:
             raise ValueError(f"need min_pairs >= 1 and doubt_factor >= 1, got {min_pairs}, {doubt_factor}")
+        if distinct not in DISTINCT:
+            raise ValueError(f"distinct must be one of {DISTINCT}, got {distinct!r}")
         self.model = model
         self.min_pairs = min_pairs
+        self.distinct = distinct
         self.doubt_factor = doubt_factor
         self._limit = model.scaled(doubt_factor).half_turn_path_mm()  # drift paths searched up to this
         self.motion = MotionGraph(model.lever_mm)
@@ -302,6 +313,12 @@ class LoopGate:
         return [p.loop for p, k in zip(loops, ok) if k]
 
     # ------------------------------------------------------------------ across groups
+    def _support(self, agree: set[int], ends: list, members: list[PendingLoop]) -> int:
+        """Independent support of an agreeing set of loops (see ``distinct``)."""
+        if self.distinct == "queries":
+            return len({members[q].b_id for q in agree})
+        return min(len({ends[q][0] for q in agree}), len({ends[q][1] for q in agree}))
+
     def _evaluate(self, members: list[PendingLoop], group_of, pose) -> list[PendingLoop] | None:
         """Loops between one pair of groups: the largest set agreeing on the transform between
         them, when it has enough support and no disagreeing set has too (else None)."""
@@ -326,7 +343,7 @@ class LoopGate:
             paths = torch.tensor([from_a[ends[k][0]][a] + from_b[ends[k][1]][b] for a, b, _ in ends],
                                  dtype=torch.float64)
             agree = {q for q, ok in enumerate(consistent(pred, meas, paths, self.model).tolist()) if ok} | {k}
-            if min(len({ends[q][0] for q in agree}), len({ends[q][1] for q in agree})) >= self.min_pairs:
+            if self._support(agree, ends, members) >= self.min_pairs:
                 qualified.append(agree)
         if not qualified:
             return None

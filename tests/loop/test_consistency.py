@@ -209,6 +209,28 @@ def test_single_inter_group_loop_is_not_merged(two_sessions):
     assert sel.merges == [] and groups.group_of(16) != groups.group_of(3)
 
 
+@pytest.mark.parametrize("distinct, merges", [("queries", True), ("both", False)])
+def test_two_queries_matching_one_coverage_keyframe(two_sessions, distinct, merges):
+    """After contact loss the coverage set often keeps one keyframe of the old region: two
+    separate detections (queries 17 and 19) agreeing through that one keyframe are
+    independent support under "queries", not under "both"."""
+    true, graph, groups, _ = two_sessions
+    gate = LoopGate(MODEL, distinct=distinct)
+    for k in range(29):
+        if groups.group_of(k) == groups.group_of(k + 1):
+            gate.add_factor(k, k + 1, se3.inverse(true[k]) @ true[k + 1])
+    gate.select(17, [loop(12, 17, se3.inverse(true[12]) @ true[17])], groups.group_of, graph.pose)
+    sel = gate.select(19, [loop(12, 19, se3.inverse(true[12]) @ true[19])], groups.group_of, graph.pose)
+    assert bool(sel.merges) == merges and len(sel.accepted) == (2 if merges else 0)
+    if merges:
+        _apply(sel, graph, groups, gate)
+        solve(graph)
+        est = graph.poses()
+        rot, trans = pose_error(se3.inverse(est[0]) @ est, true)
+        assert groups.group_of(29) == groups.group_of(0)
+        assert float(rot.max()) < 1e-6 and float(trans.max()) < 1e-6
+
+
 def test_two_agreeing_inter_group_loops_merge_with_correct_poses(two_sessions):
     true, graph, groups, gate = two_sessions
     false_loop = loop(3, 17, symmetric_false(true, 3, 17))
@@ -282,6 +304,8 @@ def test_bad_gate_settings_are_refused():
         LoopGate(MODEL, min_pairs=0)
     with pytest.raises(ValueError, match="doubt_factor"):
         LoopGate(MODEL, doubt_factor=0.5)
+    with pytest.raises(ValueError, match="distinct"):
+        LoopGate(MODEL, distinct="one")
     cfg = Config()
     with pytest.raises(ValueError, match="drift tolerances"):
         BackEnd(replace(cfg, loop=replace(cfg.loop, drift_base_trans_mm=-0.1)))
