@@ -359,6 +359,11 @@ def _motion(rot: np.ndarray, txy: np.ndarray, scale: np.ndarray, dtype: np.dtype
     return out
 
 
+def _host_dtype(dtype: torch.dtype) -> np.dtype:
+    """The numpy dtype of a torch dtype (host arrays packed for the device)."""
+    return torch.empty((), dtype=dtype).numpy().dtype
+
+
 def _ridge(ata_full: torch.Tensor) -> np.ndarray:
     """``1e-12`` of each pair's largest diagonal entry on the diagonal, host float64.
     ``(b, 5, 5)`` -> ``(b, 5, 5)``."""
@@ -380,7 +385,7 @@ def _gauss_newton(st: _State, pairs: _Pairs, scale: np.ndarray, align_corners: b
         pairs = pairs.take(ids)
     cur, ridge = st.take(ids), _ridge(pairs.ata_full)
     dev = pairs.points_t.device
-    host_dt = torch.empty((), dtype=pairs.points_t.dtype).numpy().dtype
+    host_dt = _host_dtype(pairs.points_t.dtype)
     tol2 = (np.array([config.rot_tol, config.trans_tol_m]) * tol_scale) ** 2
     for i in range(max_iters):
         motion = torch.from_numpy(_motion(cur.rot, cur.txy, scale, host_dt)).to(dev)
@@ -486,11 +491,8 @@ def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig,
     one pass; the reductions over them run on the host in float64."""
     b, k = len(st.rot), prep.points_t.shape[2]
     h_map, l_map, c_map = maps
-    host_dt = torch.empty((), dtype=prep.dtype).numpy().dtype
-    pack = np.zeros((b, 3, 4), dtype=host_dt)  # rows: grid x, grid y, (R P)_z
-    pack[:, :2, :3] = st.rot[:, :2] * scale[:, None]
-    pack[:, :2, 3] = st.txy * scale
-    pack[:, 2, :3] = st.rot[:, 2]
+    pack = _motion(st.rot, st.txy, scale, _host_dtype(prep.dtype))[:, :3]  # rows: grid x, grid y, then
+    pack[:, 2, :3] = st.rot[:, 2]  # (R P)_z
     pack = torch.from_numpy(pack).to(prep.device)
     proj = torch.baddbmm(pack[:, :, 3:], pack[:, :, :3], prep.points_t.expand(b, -1, -1))  # (B, 3, K)
     grid = proj[:, :2].mT

@@ -306,6 +306,8 @@ def test_bad_gate_settings_are_refused():
         LoopGate(MODEL, doubt_factor=0.5)
     with pytest.raises(ValueError, match="distinct"):
         LoopGate(MODEL, distinct="one")
+    with pytest.raises(ValueError, match="distinct"):
+        BackEnd(replace(Config(), loop=replace(Config().loop, merge_distinct="")))
     cfg = Config()
     with pytest.raises(ValueError, match="drift tolerances"):
         BackEnd(replace(cfg, loop=replace(cfg.loop, drift_base_trans_mm=-0.1)))
