@@ -119,6 +119,10 @@ class NormalFlowConfig:
     ``degenerate_eig`` (0 disables the test). ``coarse_factors`` adds coarse levels
     (e.g. ``(4,)``: normal maps averaged over 4x4 blocks, at most
     ``coarse_max_iters`` iterations each) that widen the basin for large motions.
+    ``fallback_factors``: pairs that fail are solved once more from the same start
+    through coarse levels of these factors, e.g. ``(16, 4)`` (empty: no retry); only
+    failures pay for it. For registration from a poor initial guess; off by default
+    because the tracker needs a failure to make a keyframe (docs/registration.md).
     """
 
     n_samples: int | None = 3000
@@ -137,6 +141,7 @@ class NormalFlowConfig:
     seed: int = 0
     coarse_factors: tuple[int, ...] = ()
     coarse_max_iters: int = 20
+    fallback_factors: tuple[int, ...] = ()
 
 
 @dataclass

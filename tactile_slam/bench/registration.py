@@ -137,6 +137,7 @@ def run(args) -> Path:
     variants = {
         "normalflow": NormalFlowConfig(),
         "normalflow_coarse4": NormalFlowConfig(coarse_factors=(4,)),
+        "normalflow_fallback16-4": NormalFlowConfig(fallback_factors=(16, 4)),
         "threshold_rule (public GelSLAM selection)": NormalFlowConfig(selection="threshold"),
         "old_normalflow (random 5000, no checks)": NormalFlowConfig(selection="random", n_samples=5000,
                                                                     check_scores=False),

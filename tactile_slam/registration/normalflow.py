@@ -71,6 +71,8 @@ class PreparedReference:
         levels: coarse to fine; the last is full resolution.
         shape: ``(H, W)`` of the image.
         m_per_px: metres per pixel.
+        normals_map: ``(B, H, W, 3)`` the references' normal maps in the working dtype
+            (the source of coarse levels built later, :meth:`retry_levels`).
     """
 
     points_t: torch.Tensor
@@ -80,6 +82,7 @@ class PreparedReference:
     levels: list[Level]
     shape: tuple[int, int]
     m_per_px: float
+    normals_map: torch.Tensor
 
     def __len__(self) -> int:
         return self.points_t.shape[0]
@@ -92,6 +95,18 @@ class PreparedReference:
     @property
     def dtype(self) -> torch.dtype:
         return self.points_t.dtype
+
+    def retry_levels(self, ids: np.ndarray | None, factors: tuple[int, ...], jacobian: str) -> "PreparedReference":
+        """The references ``ids`` (all if ``None``) with coarse levels ``factors`` in
+        front of the full-resolution level: the pyramid of the fallback solve."""
+        take = (lambda x: x) if ids is None else (lambda x: x[torch.from_numpy(ids).to(x.device)])
+        points_t, valid, normals_map = take(self.points_t), take(self.valid), take(self.normals_map)
+        fine = self.levels[-1]
+        levels = [_coarse_level(normals_map, points_t.mT, valid, self.m_per_px, f, jacobian)
+                  for f in sorted(factors, reverse=True)]
+        levels.append(Level(*(take(x) for x in (fine.normals_t, fine.jacobian_t, fine.jtj, fine.ata_full)), 1))
+        return PreparedReference(points_t, take(self.curvature), take(self.spread), valid, levels, self.shape,
+                                 self.m_per_px, normals_map)
 
     @property
     def device(self) -> torch.device:
@@ -111,9 +126,10 @@ def _check_config(config: NormalFlowConfig, shape: tuple[int, int] | None = None
         raise RegistrationError("normalflow.max_iters, min_iters and coarse_max_iters must be >= 1")
     if config.lm_damping < 0:
         raise RegistrationError(f"normalflow.lm_damping must be >= 0, got {config.lm_damping}")
-    for f in config.coarse_factors:
-        if f < 2 or (shape is not None and (shape[0] % f or shape[1] % f)):
-            raise RegistrationError(f"normalflow.coarse_factors must be >= 2 and divide the image size, got {f}")
+    for name in ("coarse_factors", "fallback_factors"):
+        for f in getattr(config, name):
+            if f < 2 or (shape is not None and (shape[0] % f or shape[1] % f)):
+                raise RegistrationError(f"normalflow.{name} must be >= 2 and divide the image size, got {f}")
 
 
 def metric_points(height: torch.Tensor, idx: torch.Tensor, m_per_px: float) -> torch.Tensor:
@@ -207,7 +223,8 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
               for f in sorted(config.coarse_factors, reverse=True)]
     dn_t = sobel_at(normals_map, idx).permute(0, 2, 3, 1) / s  # (B, 3, 2, K)
     levels.append(_level(points.mT, normals.mT, dn_t, valid, 1, config.jacobian))
-    return PreparedReference(points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s)
+    return PreparedReference(points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s,
+                             normals_map)
 
 
 def _spread(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -435,6 +452,9 @@ def register_prepared(
 
     Returns:
         a :class:`RegistrationResult` of ``B`` pairs; failures are reported, not raised.
+        With ``config.fallback_factors``, pairs that fail are solved once more from the
+        same initial pose through coarse levels of those factors; a retry replaces the
+        failure only if it passes every check.
     """
     config = config or NormalFlowConfig()
     _check_config(config, prep.shape)
@@ -448,8 +468,29 @@ def register_prepared(
     if abs(tar.mm_per_px / 1000.0 - prep.m_per_px) > 1e-12:
         raise RegistrationError(f"target scale {tar.mm_per_px} mm/px differs from the reference's")
     _check_finite(tar, "target")
-    dev, dt = prep.device, prep.dtype
     init = np.eye(4)[None] if init_tar_T_ref is None else _host_init(init_tar_T_ref, b)
+    res = _register_levels(prep, tar, init, config)
+    if not config.fallback_factors or bool(res.ok.all()):
+        return res
+    # fallback: the failed pairs again from the same start, coarse levels first
+    ids = np.flatnonzero(~res.ok.cpu().numpy())
+    retry = _register_levels(prep.retry_levels(ids if len(prep) > 1 else None, config.fallback_factors,
+                                               config.jacobian),
+                             tar[torch.from_numpy(ids).to(tar.device)], init[ids] if len(init) > 1 else init, config)
+    take = torch.zeros(b, dtype=torch.bool, device=res.ok.device)
+    take[torch.from_numpy(ids).to(take.device)] = retry.ok
+    merged = {f.name: getattr(res, f.name).clone() for f in fields(RegistrationResult)}
+    for name, value in merged.items():
+        value[take] = getattr(retry, name)[retry.ok]
+    return RegistrationResult(**merged)
+
+
+def _register_levels(prep: PreparedReference, tar: Frame, init: np.ndarray, config: NormalFlowConfig
+                     ) -> RegistrationResult:
+    """Solve the levels of ``prep`` (coarse to fine) from ``init`` ``(1 or B, 4, 4)``,
+    then score (:func:`_finish`)."""
+    b = len(tar)
+    dev, dt = prep.device, prep.dtype
     n_map = tar.normals.to(device=dev, dtype=dt).permute(0, 3, 1, 2)  # a view: no copy
     c_map = tar.contact.to(device=dev, dtype=dt).unsqueeze(1)
     flags = np.zeros(b, dtype=bool)

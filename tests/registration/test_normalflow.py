@@ -169,6 +169,42 @@ def test_old_normalflow_mode(scene):
     assert (rot < 0.1).all() and (trans < 0.01).all()
 
 
+class TestFallback:
+    """Pairs that fail are solved again through coarse levels (``fallback_factors``)."""
+
+    def test_recovers_a_translation_beyond_the_fine_basin(self):
+        truth = rigid(tx_mm=1.5, ty_mm=-0.75)
+        f = frames(bumpy(1), [EYE, truth])
+        off = register(f[0], f[1], None, NormalFlowConfig(fallback_factors=()))
+        assert not bool(off.ok[0])  # the full-resolution solve alone fails (and says so)
+        on = register(f[0], f[1], None, NormalFlowConfig(fallback_factors=(16, 4)))
+        rot, trans = pose_error(on.tar_T_ref, truth[None])
+        assert bool(on.ok[0]) and float(rot) < 0.1 and float(trans) < 0.01, (float(rot), float(trans))
+
+    @pytest.mark.parametrize("own_references", [False, True])
+    def test_only_failures_are_retried(self, own_references):
+        """One batch: a passing pair keeps its exact result, a failure the retry fixes takes
+        the retry's, and a pair that fails both ways keeps its first result."""
+        big = rigid(tx_mm=1.5, ty_mm=-0.75)
+        f = frames(bumpy(1), [EYE, rigid(rz_deg=-10), big])
+        refs = Frame.cat([f[0]] * 3) if own_references else f[0]
+        tars = Frame.cat([f[1], f[2], f[1]])
+        init = torch.stack([EYE, EYE, rigid(tx_mm=9.0)])  # the last starts off the contact
+        off = register(refs, tars, init, NormalFlowConfig(fallback_factors=()))
+        on = register(refs, tars, init, NormalFlowConfig(fallback_factors=(16, 4)))
+        assert off.ok.tolist() == [True, False, False] and on.ok.tolist() == [True, True, False]
+        for name in ("tar_T_ref", "ccs", "scr", "n_shared", "iterations", "converged"):
+            a, b = getattr(on, name)[[0, 2]], getattr(off, name)[[0, 2]]
+            assert torch.equal(a, b) or torch.allclose(a, b, rtol=0, atol=0, equal_nan=True), name
+        rot, trans = pose_error(on.tar_T_ref[1:2], big[None])
+        assert float(rot) < 0.1 and float(trans) < 0.01
+
+    def test_bad_factor(self, scene):
+        ref, tars, _, _ = scene
+        with pytest.raises(RegistrationError, match="fallback_factors"):
+            register(ref, tars[:1], None, NormalFlowConfig(fallback_factors=(7,)))
+
+
 class TestFailures:
     def test_flat_contact_is_a_failure_without_nan(self):
         f = frames(Surface(flat=True), [EYE, rigid(tx_mm=0.2)])
