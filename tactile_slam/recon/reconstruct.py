@@ -109,6 +109,11 @@ def reconstruct(
     stats: dict = {"group": label, "keyframes": len(kfs), "groups": len(parts)}
     t0 = time.perf_counter()
     coverage = build_coverage(kfs, grp_poses, config)
+    if not coverage.active:
+        raise ReconError(
+            f"group {label} has no coverage keyframe: each of its {len(kfs)} contacts has a boundary-weighted "
+            f"area below loop.coverage_overlap_mm2 ({config.loop.coverage_overlap_mm2:.3g} mm^2), too small to fuse"
+        )
     t1 = time.perf_counter()
     fused = fuse(kfs, grp_poses, config, coverage)
     fused_mesh = merge_surfaces(fused)

@@ -84,3 +84,13 @@ def test_clear_errors(sphere_scan):
     with pytest.raises(ReconError, match="unknown group"):
         reconstruct(kfs[:3], poses[:3], cfg, group=5)
     assert issubclass(ReconError, ValueError)
+
+
+def test_touches_too_small_to_fuse_are_named():
+    """Light presses (~110 px of contact, boundary-weighted area ~1 px) are never coverage
+    keyframes: the error says why instead of failing later in the fusion."""
+    cfg = small_config()
+    kfs, poses = sphere_keyframes(cfg, radius_mm=RADIUS_MM, depth_mm=0.1, n=3)
+    assert all(bool(k.frame.contact.any()) for k in kfs)
+    with pytest.raises(ReconError, match="no coverage keyframe.*too small to fuse"):
+        reconstruct(kfs, poses, cfg)
