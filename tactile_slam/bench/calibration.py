@@ -21,6 +21,7 @@ from tactile_slam.calibration.evaluate import evaluate_model
 from tactile_slam.calibration.labels import label_presses
 from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.calibration.train import LOSSES, TrainConfig, train_model
+from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import REPO_ROOT, load_config
 
 
@@ -32,7 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--epochs", type=int, default=TrainConfig.epochs)
     p.add_argument("--lr-step", type=int, default=TrainConfig.lr_step)
     p.add_argument("--loss", default=TrainConfig.loss, choices=sorted(LOSSES))
-    p.add_argument("--device", default="cpu")
+    add_device_argument(p)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--repeats", type=int, default=20, help="timed full-frame decodes per model")
 

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from tactile_slam.bench.common import time_fn, timing_stats, write_json
+from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import Config, NormalFlowConfig
 from tactile_slam.geometry.frame import Frame, FrameBuilder
 from tactile_slam.registration.baselines import register_fpfh, register_icp
@@ -34,7 +35,7 @@ TILTS_DEG = (2.0, 5.0, 10.0, 15.0)
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objects", nargs="+", default=list(OBJECTS), help="simulator objects")
-    p.add_argument("--device", default="cpu")
+    add_device_argument(p)
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--depth-mm", type=float, default=0.8, help="reference indentation")
     p.add_argument("--repeats", type=int, default=5, help="timed calls per pair")

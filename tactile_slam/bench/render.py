@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from tactile_slam.bench.common import time_fn, timing_stats, write_json
+from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import Config
 from tactile_slam.sim.episode import SimulationSettings, simulate_episode
 from tactile_slam.sim.motions import make_motion
@@ -23,7 +24,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--repeats", type=int, default=5, help="timed batches per object")
     p.add_argument("--episode-objects", default="seed,lime",
                    help="objects for the end-to-end 520-frame tracking episode timing ('' to skip)")
-    p.add_argument("--device", default="cpu")
+    add_device_argument(p)
 
 
 def run(args) -> Path:

@@ -15,6 +15,7 @@ from tactile_slam.calibration.evaluate import evaluate_model, format_comparison
 from tactile_slam.calibration.model import load_model
 from tactile_slam.calibration.train import LOSSES, TrainConfig
 from tactile_slam.calibration.workflow import labels_for, run_labelling, run_training
+from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import load_config
 
 
@@ -23,12 +24,6 @@ def _common(p, threads: bool = True) -> None:
     if threads:
         p.add_argument("--threads", type=int, default=1,
                        help="torch CPU threads (default 1: the small MLP gains nothing from more)")
-
-
-def _device(name: str) -> str:
-    if name == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return name
 
 
 def _label(args) -> int:
@@ -48,7 +43,7 @@ def _train(args) -> int:
     sensor = load_config(args.config).sensor
     cfg = TrainConfig(
         hidden=tuple(int(h) for h in args.hidden.split(",")), epochs=args.epochs, batch_size=args.batch_size,
-        lr=args.lr, lr_step=args.lr_step, loss=args.loss, seed=args.seed, device=_device(args.device),
+        lr=args.lr, lr_step=args.lr_step, loss=args.loss, seed=args.seed, device=args.device,
     )
     out = Path(args.out) if args.out else Path(args.calib_dir) / "model"
     summary = run_training(args.calib_dir, out, sensor, cfg, args.labels, args.test_fraction, args.reference,
@@ -62,7 +57,7 @@ def _train(args) -> int:
 def _evaluate(args) -> int:
     torch.set_num_threads(args.threads)
     sensor = load_config(args.config).sensor
-    device = _device(args.device)
+    device = args.device
     calib = load_calibration_set(args.calib_dir, sensor.shape)
     labels = {lb.reldir: lb for lb in labels_for(calib, sensor, args.labels)}
     model, meta = load_model(args.model, device)
@@ -125,7 +120,7 @@ def register(sub) -> None:
     tp.add_argument("--loss", default=TrainConfig.loss, choices=sorted(LOSSES))
     tp.add_argument("--seed", type=int, default=0)
     tp.add_argument("--test-fraction", type=float, default=0.2)
-    tp.add_argument("--device", default="cpu", help="cpu, cuda, or auto (cuda when present)")
+    add_device_argument(tp)
     tp.add_argument("--reference", help="a reference model to evaluate beside the new one")
     tp.add_argument("--colour-model", action="store_true", help="also fit the simulator's colour model")
     tp.add_argument("--json", help="also write the summary to this JSON file")
@@ -139,7 +134,7 @@ def register(sub) -> None:
     ep.add_argument("--reference", help="a second model to evaluate side by side")
     ep.add_argument("--presses", choices=("auto", "all", "heldout"), default="auto",
                     help="auto: the model's held-out presses when it was trained on this folder, else all")
-    ep.add_argument("--device", default="cpu")
+    add_device_argument(ep)
     ep.add_argument("--json", help="write the results to this JSON file")
     _common(ep)
     ep.set_defaults(func=_evaluate)

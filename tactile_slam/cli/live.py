@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import load_config
 from tactile_slam.io.dispatch import CAMERA_PREFIX, open_source
 from tactile_slam.pipeline.offline import METHODS
@@ -43,7 +44,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--camera", default="GelSight Mini", help="device index or a V4L2 name it contains")
     p.add_argument("--config", default=None, help="YAML config (ours or GelSLAM's) or a preset name")
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    add_device_argument(p)
     p.add_argument("--method", default="gelslam", choices=[m for m in METHODS if m != "gs-imagesift"])
     p.add_argument("--model", default=None, help="calibration model file (default: the sensor's packaged model)")
     p.add_argument("--keyframe-panels", action="store_true", help="write a geometry picture per keyframe")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.cli.live import add_online_arguments, online_options, report
 from tactile_slam.config import load_config
 from tactile_slam.io.dispatch import open_source
@@ -17,7 +18,7 @@ def register(sub) -> None:
     p.add_argument("scan", help="recorded-scan folder, video file, image folder or gradient-map sequence")
     p.add_argument("--out", required=True, help="output folder")
     p.add_argument("--config", default=None, help="YAML config (ours or GelSLAM's) or a preset name")
-    p.add_argument("--device", default="cpu", help="cpu or cuda")
+    add_device_argument(p)
     p.add_argument("--method", default="gelslam", choices=METHODS,
                    help="gelslam (full system, default), ablations gs-onlysift/gs-onlynf/gs-imagesift, "
                         "nf-kf (tracker only) or nf (frame-to-frame NormalFlow)")

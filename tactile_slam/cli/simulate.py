@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 
+from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import load_config
 from tactile_slam.sim.episode import LEVELS, SimulationSettings, simulate_episode
 from tactile_slam.sim.motions import DEFAULT_FRAMES, KINDS
@@ -29,7 +30,7 @@ def register(sub) -> None:
     p.add_argument("--colour-model", default=None, help="forward colour model (.pt)")
     p.add_argument("--background", default=None, help="background image (default: real Mini background or synthetic)")
     p.add_argument("--config", default=None, help="sensor preset name or config YAML")
-    p.add_argument("--device", default="cpu", help="device of the rendered maps")
+    add_device_argument(p, "device of the rendered maps (cpu, cuda, auto)")
     p.add_argument("--out", required=True, help="output episode folder")
     p.set_defaults(func=run)
 

@@ -96,6 +96,8 @@ class OfflinePipeline:
         self.options = options or RunOptions()
         if self.options.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {self.options.method!r}")
+        if torch.device(self.options.device).type == "cuda" and not torch.cuda.is_available():
+            raise ValueError(f"device {self.options.device!r}: CUDA is not available (torch {torch.__version__})")
         self.visualizer = visualizer or NullVisualizer()
 
     # ------------------------------------------------------------------ set-up

@@ -2,13 +2,16 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 
 import cv2
 import numpy as np
 import open3d as o3d
 import pytest
+import torch
 
+from tactile_slam.cli.devices import device_arg
 from tactile_slam.cli.main import main
 from tactile_slam.config import Config
 from tactile_slam.eval.tracking_metrics import per_axis_mae
@@ -124,9 +127,29 @@ def test_cli_bad_inputs(tmp_path, capsys):
     assert not (tmp_path / "o2").exists()
 
 
+@pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
+def test_cli_cuda_without_a_gpu_is_a_clear_error(tmp_path, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(["run", str(tmp_path), "--out", str(tmp_path / "o"), "--device", "cuda"])
+    assert exc.value.code == 2
+    assert "--device: cuda: CUDA is not available" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_device_argument():
+    assert device_arg("cpu") == "cpu"
+    assert device_arg("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
+    for bad in ("gpu", "mps", "cuda:99"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            device_arg(bad)
+
+
 def test_method_validation(tmp_path):
     with pytest.raises(ValueError, match="method must be one of"):
         OfflinePipeline(iter([]), Config(), tmp_path, RunOptions(method="icp"))
+    if not torch.cuda.is_available():
+        with pytest.raises(ValueError, match="CUDA is not available"):
+            OfflinePipeline(iter([]), Config(), tmp_path, RunOptions(device="cuda"))
 
 
 def test_scan_folder_frame_indexing(tracking_episode, tmp_path):
