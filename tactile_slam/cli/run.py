@@ -24,6 +24,8 @@ def register(sub) -> None:
                         "nf-kf (tracker only) or nf (frame-to-frame NormalFlow)")
     p.add_argument("--model", default=None, help="calibration model file (default: the sensor's packaged model)")
     p.add_argument("--batch-size", type=int, default=8, help="frames per geometry batch")
+    p.add_argument("--resize", action="store_true",
+                   help="resize frames of another size to the sensor's working size (default: refuse them)")
     p.add_argument("--keyframe-panels", action="store_true", help="write a geometry picture per keyframe")
     p.add_argument("--no-mesh", action="store_true", help="poses only: skip fusion and meshing")
     p.add_argument("--no-progress", action="store_true")
@@ -34,7 +36,7 @@ def register(sub) -> None:
 
 def run(args) -> int:
     config = load_config(args.config) if args.config else None
-    source = open_source(args.scan, config)
+    source = open_source(args.scan, config, resize=args.resize)
     config = config or getattr(source, "config", None) or load_config(None)
     out = Path(args.out)
     vis = KeyframePanels(out / "keyframes") if args.keyframe_panels else NullVisualizer()

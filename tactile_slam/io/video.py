@@ -39,7 +39,7 @@ def fit_to_shape(image: np.ndarray, shape: tuple[int, int] | None, resize: bool,
         h, w = image.shape[:2]
         raise InputError(
             f"{where}: frames are {w}x{h} but the working size is {shape[1]}x{shape[0]} "
-            "(pass resize=True to resize them)"
+            "(pass resize=True, or --resize on the command line, to resize them)"
         )
     return resize_bgr(image, shape)
 

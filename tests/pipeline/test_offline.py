@@ -127,6 +127,24 @@ def test_cli_bad_inputs(tmp_path, capsys):
     assert not (tmp_path / "o2").exists()
 
 
+def test_cli_frames_of_another_size_need_resize(mini_data, tmp_path, capsys):
+    """A 640x480 recording is refused with a message naming --resize, and tracked with it."""
+    from tactile_slam.io.video import write_video
+
+    calib = mini_data / "calibration"
+    big = [cv2.resize(cv2.imread(str(p)), (640, 480))
+           for p in (calib / "background.png", calib / "6.310mm" / "3" / "gelsight.png")]
+    scan = tmp_path / "big"
+    scan.mkdir()
+    write_video(scan / "gelsight.avi", np.stack([big[0]] * 10 + [big[1]] * 4), 25.0)
+    assert main(["run", str(scan), "--out", str(tmp_path / "o1"), "--no-mesh"]) == 2
+    assert "640x480" in (err := capsys.readouterr().err) and "--resize" in err
+    assert not (tmp_path / "o1").exists()
+    assert main(["run", str(scan), "--out", str(tmp_path / "o2"), "--no-mesh", "--resize", "--no-progress"]) == 0
+    stats = json.loads((tmp_path / "o2" / "stats.json").read_text())
+    assert stats["contact_frames"] == 4 and stats["sessions"] == 1
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
 def test_cli_cuda_without_a_gpu_is_a_clear_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
