@@ -83,6 +83,12 @@ class ContactConfig:
     color_dist_threshold: float = 15.0
     dilate: int = 7
     erode: int = 15
+    # depth test (geometry/contact.py): pixels deeper than height_threshold_mm (the public
+    # SDK's rule, which drops touches not much deeper than it), or, for a shallower touch,
+    # deeper than height_fraction of its deepest point (at least min_depth_mm);
+    # height_fraction None: the fixed threshold alone. README, "Frame geometry".
+    height_fraction: float | None = 0.5
+    min_depth_mm: float = 0.05
     height_threshold_mm: float = 0.2
     height_percentile: float = 85.0
     final_erode: int | None = None
@@ -281,6 +287,15 @@ class Config:
     @property
     def height_threshold_px(self) -> float:
         return self.contact.height_threshold_mm / self.sensor.mm_per_px
+
+    @property
+    def depth_test(self) -> tuple[float, float | None, float]:
+        """``(threshold_px, fraction, floor_px)`` of the contact depth test for
+        :func:`tactile_slam.geometry.contact.contact_mask`."""
+        c = self.contact
+        if c.height_fraction is not None and not 0.0 < c.height_fraction <= 1.0:
+            raise ConfigError(f"contact.height_fraction must be in (0, 1] or None, got {c.height_fraction}")
+        return self.height_threshold_px, c.height_fraction, c.min_depth_mm / self.sensor.mm_per_px
 
     # ------------------------------------------------------------------ I/O
     def to_dict(self) -> dict[str, Any]:

@@ -73,7 +73,8 @@ def run(args) -> Path:
     def masks():
         c = colour_mask(colour_distance(img, decoder.background), cfg.contact.color_dist_threshold, cfg.contact.dilate, cfg.contact.erode)
         zero_level(h, dilate(c, cfg.contact.dilate))
-        return contact_mask(h, c, cfg.height_threshold_px, cfg.contact.height_percentile, cfg.final_erode_px)
+        threshold, fraction, floor = cfg.depth_test
+        return contact_mask(h, c, threshold, cfg.contact.height_percentile, cfg.final_erode_px, fraction, floor)
 
     stages["masks_zero_level"] = time_fn(masks, args.frames // 2, sync_cuda=sync)
     m = masks()[1]

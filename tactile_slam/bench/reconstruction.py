@@ -37,7 +37,7 @@ from tactile_slam.eval.recon_metrics import recon_report, surface_metrics, touch
 from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.io import open_source
 from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
-from tactile_slam.recon import reconstruct
+from tactile_slam.recon import ReconError, reconstruct
 from tactile_slam.sim.episode import SimulationSettings, read_episode, simulate_episode
 from tactile_slam.sim.objects import make_object
 from tactile_slam.sim.renderer import GelRenderer
@@ -137,11 +137,17 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
     out = []
     for variant in args.variants:
         kfs, poses, object_T_start = variant_input(variant, keyframes, est, groups, episode.object_T_sensor)
-        res = reconstruct(kfs, poses, config)
         entry = {"object": name, "size": size_label, "size_mm": size, "frames": frames, "level": args.level,
                  "variant": variant,
-                 "keyframes": len(kfs), "simulation_s": t1 - t0, "system_s": t2 - t1, "system": system,
-                 "stats": res.stats}
+                 "keyframes": len(kfs), "simulation_s": t1 - t0, "system_s": t2 - t1, "system": system}
+        try:
+            res = reconstruct(kfs, poses, config)
+        except ReconError as exc:  # e.g. a group of touches too small to fuse: recorded, the others go on
+            entry["skipped"] = str(exc)
+            print(f"{name:6s} {size_label:5s} {variant:9s} K {len(kfs):4d} skipped: {exc}", flush=True)
+            out.append(entry)
+            continue
+        entry["stats"] = res.stats
         entry["mesh"] = recon_report(res.mesh.to_open3d(), gt_mesh, object_T_start, icp=True,
                                      n_samples=args.samples, n_touches=args.touches, seed=args.seed, config=config)
         fused = res.fused_mesh.to_open3d().transform(object_T_start)

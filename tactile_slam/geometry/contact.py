@@ -82,21 +82,41 @@ def contact_mask(
     height_threshold_px: float,
     percentile_q: float,
     final_erode: int,
+    fraction: float | None = None,
+    floor_px: float = 0.0,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Contact rule: colour AND height below P85 - threshold, then a final erosion
-    whose out-of-image pixels count as non-contact.
+    """Contact rule: colour AND depth below the P85 level, then a final erosion whose
+    out-of-image pixels count as non-contact.
+
+    The depth test is ``P85(h) - h > t``. With ``fraction`` ``None`` (the public SDK's
+    rule), or without a colour mask, ``t = height_threshold_px``. With a fraction and a
+    colour mask, ``t = min(height_threshold_px, max(fraction * D, floor_px))``, ``D``
+    being the frame's deepest point inside the colour mask: a deep press keeps the fixed
+    threshold, while a
+    touch not much deeper than it keeps the part deeper than ``fraction`` of its depth
+    instead of vanishing (at ``fraction = 0.5``, where an elastic layer pressed by a
+    sphere leaves the indenter: the surface at a Hertzian contact's edge sits at half
+    the indentation).
 
     Args:
         height: ``(B, H, W)`` px.
         colour: ``(B, H, W)`` bool colour mask, or ``None`` (height rule only, for
             gradient-level input).
+        height_threshold_px: the fixed threshold (the cap of the relative one).
+        fraction, floor_px: the relative threshold's fraction of the deepest point and
+            its lower bound; ``fraction=None`` keeps the fixed threshold.
 
     Returns:
         ``(raw, eroded)`` masks, each ``(B, H, W)`` bool.
     """
     b = height.shape[0]
     p = percentile(height.reshape(b, -1), percentile_q)
-    raw = height < (p - height_threshold_px)[:, None, None]
+    depth = p[:, None, None] - height
+    t = torch.full_like(p, height_threshold_px)
+    if fraction is not None and colour is not None:  # height alone (gradient input) keeps the fixed rule
+        deepest = torch.where(colour, depth, torch.zeros_like(depth)).reshape(b, -1).amax(dim=1)
+        t = torch.minimum(t, (fraction * deepest).clamp(min=floor_px))
+    raw = depth > t[:, None, None]
     if colour is not None:
         raw = raw & colour
     return raw, erode(raw, final_erode, border_is_contact=False)

@@ -117,6 +117,7 @@ class FrameBuilder:
     def __init__(self, config: Config, decoder: GradientDecoder | None = None, integrator: str = "exact"):
         if integrator not in ("exact", "legacy"):
             raise ValueError(f"integrator must be 'exact' or 'legacy', got {integrator!r}")
+        self.depth_test = config.depth_test  # (threshold px, fraction, floor px); checked here, not at the first frame
         self.config = config
         self.decoder = decoder
         self.integrate = integrate_exact if integrator == "exact" else integrate_legacy
@@ -172,9 +173,9 @@ class FrameBuilder:
         b = gradients.shape[0]
         height = zero_level(self.integrate(gradients), changed)
         if given_contact is None:
-            _, contact = contact_mask(
-                height, colour, cfg.height_threshold_px, cfg.contact.height_percentile, cfg.final_erode_px
-            )
+            threshold, fraction, floor = self.depth_test
+            _, contact = contact_mask(height, colour, threshold, cfg.contact.height_percentile, cfg.final_erode_px,
+                                      fraction, floor)
         else:
             contact = given_contact
         lap = curvature(gradients, contact, cfg.curvature.blur_ksize, cfg.curvature.blur_sigma, cfg.curvature.clip)

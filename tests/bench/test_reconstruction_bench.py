@@ -75,3 +75,28 @@ def test_tiny_run_scores_ground_truth_and_estimated_meshes(tmp_path):
     # (the watertight Poisson mesh of a partial scan also closes what was never touched)
     assert by["gt_group"]["fused"]["gt_pose"]["recon_to_gt_mm"] < 0.02
     assert by["estimated"]["fused"]["gt_pose"]["recon_to_gt_mm"] < 0.05
+
+
+def test_a_variant_that_cannot_be_meshed_is_recorded_and_the_rest_go_on(tmp_path, monkeypatch):
+    """A group too small to fuse (ReconError) becomes a ``skipped`` entry; the other
+    variants are still scored and written."""
+    real = reconstruction.reconstruct
+
+    def refuse_estimated(kfs, poses, config):
+        if len(kfs) and refuse_estimated.calls == 1:
+            refuse_estimated.calls += 1
+            raise reconstruction.ReconError("group 0 has no coverage keyframe: too small to fuse")
+        refuse_estimated.calls += 1
+        return real(kfs, poses, config)
+
+    refuse_estimated.calls = 0
+    monkeypatch.setattr(reconstruction, "reconstruct", refuse_estimated)
+    p = argparse.ArgumentParser()
+    p.add_argument("--out", default=str(tmp_path / "reconstruction.json"))
+    reconstruction.add_arguments(p)
+    args = p.parse_args(["--objects", "dice", "--sizes", "small", "--frames", "160", "--samples", "2000",
+                         "--touches", "4", "--work", str(tmp_path / "work")])
+    runs = json.loads(reconstruction.run(args).read_text())["results"]["runs"]
+    assert [r["variant"] for r in runs] == list(reconstruction.VARIANTS)
+    assert "too small to fuse" in runs[1]["skipped"] and "mesh" not in runs[1]
+    assert "skipped" not in runs[0] and "skipped" not in runs[2] and "mesh" in runs[2]

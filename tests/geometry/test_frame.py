@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 from scipy import ndimage
@@ -177,3 +179,60 @@ def test_ring_contact_keeps_unpressed_centre():
     _, eroded = contact_mask(h, colour, 3.155, 85.0, 5)
     assert not eroded[0][rad < 15].any()
     assert eroded[0][(rad > 25) & (rad < 40)].all()
+
+
+class TestDepthRule:
+    """The contact depth test: the public fixed 0.2 mm threshold, or, for a touch not much
+    deeper than it, the part deeper than half its depth (``contact.height_fraction``)."""
+
+    @staticmethod
+    def _press(depth_mm: float):
+        from .surfaces import grid, spherical_cap
+
+        r, c = grid()
+        radius = 4.0 / 0.0634  # a 4 mm ball
+        h = spherical_cap(radius=radius, depth=depth_mm / 0.0634)[None]
+        colour = (h < 0) | (r**2 + c**2 < 3.0)[None]  # the colour change covers the cap
+        return h, colour, radius
+
+    @pytest.mark.parametrize("depth_mm", [0.12, 0.18])
+    def test_shallow_touch_keeps_its_deeper_half(self, depth_mm):
+        from tactile_slam.geometry.contact import contact_mask
+
+        h, colour, radius = self._press(depth_mm)
+        d = depth_mm / 0.0634
+        fixed, _ = contact_mask(h, colour, 0.2 / 0.0634, 85.0, 5)
+        assert not fixed.any()  # shallower than 0.2 mm: the public rule sees nothing
+        raw, eroded = contact_mask(h, colour, 0.2 / 0.0634, 85.0, 5, fraction=0.5, floor_px=0.05 / 0.0634)
+        # deeper than d/2 on a sphere: a disc of radius^2 = R^2 - (R - d/2)^2
+        expected = math.pi * (radius**2 - (radius - d / 2) ** 2)
+        assert abs(int(raw.sum()) - expected) < 0.05 * expected
+        r_eroded = math.sqrt(expected / math.pi) - 2.5  # the final 5 x 5 erosion takes a ~2 px ring
+        assert int(eroded.sum()) > 0.9 * math.pi * r_eroded**2
+
+    def test_deep_press_keeps_the_fixed_threshold(self):
+        from tactile_slam.geometry.contact import contact_mask
+
+        h, colour, _ = self._press(0.8)
+        a = contact_mask(h, colour, 0.2 / 0.0634, 85.0, 5)
+        b = contact_mask(h, colour, 0.2 / 0.0634, 85.0, 5, fraction=0.5, floor_px=0.05 / 0.0634)
+        assert torch.equal(a[0], b[0]) and torch.equal(a[1], b[1])
+
+    def test_floor_and_height_only_input(self):
+        from tactile_slam.geometry.contact import contact_mask
+
+        h, colour, _ = self._press(0.04)  # shallower than the 0.05 mm floor
+        assert not contact_mask(h, colour, 0.2 / 0.0634, 85.0, 5, fraction=0.5, floor_px=0.05 / 0.0634)[0].any()
+        h, _, _ = self._press(0.15)  # without a colour mask the fixed rule applies
+        assert not contact_mask(h, None, 0.2 / 0.0634, 85.0, 5, fraction=0.5, floor_px=0.05 / 0.0634)[0].any()
+
+    def test_config(self):
+        from tactile_slam.config import ConfigError
+
+        cfg = Config()
+        assert cfg.depth_test == pytest.approx((0.2 / 0.0634, 0.5, 0.05 / 0.0634))
+        cfg.contact.height_fraction = None
+        assert cfg.depth_test[1] is None
+        cfg.contact.height_fraction = 1.5
+        with pytest.raises(ConfigError, match="height_fraction"):
+            FrameBuilder(cfg)
