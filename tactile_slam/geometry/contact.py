@@ -92,11 +92,10 @@ def contact_mask(
     rule), or without a colour mask, ``t = height_threshold_px``. With a fraction and a
     colour mask, ``t = min(height_threshold_px, max(fraction * D, floor_px))``, ``D``
     being the frame's deepest point inside the colour mask: a deep press keeps the fixed
-    threshold, while a
-    touch not much deeper than it keeps the part deeper than ``fraction`` of its depth
-    instead of vanishing (at ``fraction = 0.5``, where an elastic layer pressed by a
-    sphere leaves the indenter: the surface at a Hertzian contact's edge sits at half
-    the indentation).
+    threshold, while a touch not much deeper than it keeps the part deeper than
+    ``fraction`` of its depth instead of vanishing (at ``fraction = 0.5``, where an
+    elastic layer pressed by a sphere leaves the indenter: the surface at a Hertzian
+    contact's edge sits at half the indentation).
 
     Args:
         height: ``(B, H, W)`` px.
