@@ -5,6 +5,8 @@ Usage::
     prep = prepare_reference(keyframe)                 # once per reference
     res = register_prepared(prep, targets, init)        # (B,) results, never raises
     tar_T_ref = normalflow(ref, tar)                     # one pair, raises TrackingLost
+    wide = NormalFlowConfig(fallback_factors=(16, 4))    # failures retried coarse to fine:
+    tar_T_ref = normalflow(ref, tar, None, wide)         # for a poor (or no) initial guess
 
 ``tar_T_ref`` maps a static object point from reference-sensor into target-sensor
 coordinates (metres, float64). The Gauss-Newton solve estimates
