@@ -98,11 +98,14 @@ def test_values_are_typed(tmp_path):
     the field allows it; lists become tuples."""
     p = tmp_path / "c.yaml"
     p.write_text("tracking: {max_deg_per_s: null, max_mm_per_s: 30}\n"
-                 "normalflow: {coarse_factors: [8, 4], n_samples: null}\n")
+                 "normalflow: {coarse_factors: [8, 4], n_samples: null, fallback_factors: [16, 4]}\n"
+                 "contact: {height_fraction: null}\n")
     cfg = Config.from_yaml(p)
     assert cfg.tracking.max_deg_per_s is None
     assert cfg.tracking.max_mm_per_s == 30.0 and isinstance(cfg.tracking.max_mm_per_s, float)
     assert cfg.normalflow.coarse_factors == (8, 4) and cfg.normalflow.n_samples is None
+    assert cfg.normalflow.fallback_factors == (16, 4)
+    assert cfg.contact.height_fraction is None and cfg.depth_test[1] is None  # the public fixed rule
 
 
 def test_missing_file(tmp_path):
