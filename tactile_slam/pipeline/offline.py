@@ -25,7 +25,7 @@ from tactile_slam.io.dataset import FrameBatch, iter_batches
 from tactile_slam.io.frames import FrameSource
 from tactile_slam.io.scan import check_background, mean_background
 from tactile_slam.pipeline.odometry import OdometryMap
-from tactile_slam.pipeline.outputs import frame_poses, main_group_poses, write_json
+from tactile_slam.pipeline.outputs import frame_poses, main_group, main_group_poses, write_json
 from tactile_slam.pipeline.visualizer import NullVisualizer
 from tactile_slam.recon import ReconError, TriMesh, reconstruct
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
@@ -262,7 +262,8 @@ class OfflinePipeline:
         if isinstance(backend, BackEnd):
             stats.update(self._write_backend(backend))
         if self.options.mesh and error is None:
-            stats["reconstruction"] = self._reconstruct(keyframes, start_T_kf, group_of_kf, kf_of_full, kf_T_full)
+            stats["reconstruction"] = self._reconstruct(keyframes, start_T_kf, group_of_kf, kf_of_full, kf_T_full,
+                                                        groups)
         if error is not None:
             stats["error"] = f"{type(error).__name__}: {error}"
         write_json(out / "stats.json", stats)
@@ -270,11 +271,11 @@ class OfflinePipeline:
         return RunResult(poses, by_group, groups, keyframes, stats)
 
 
-    def _reconstruct(self, keyframes, start_T_kf, group_of_kf, kf_of, kf_T) -> dict:
+    def _reconstruct(self, keyframes, start_T_kf, group_of_kf, kf_of, kf_T, frame_group) -> dict:
         """Mesh of the main group in the frame of its first contact frame (the frame of
         ``poses.npy``); a run that cannot be meshed says why in ``stats.json``."""
-        first = int(np.nonzero(kf_of >= 0)[0][0])
-        label = group_of_kf[int(kf_of[first])]
+        label = main_group(frame_group)
+        first = int(np.nonzero(frame_group == label)[0][0])
         try:
             res = reconstruct(keyframes, start_T_kf, self.config, group_of_kf, group=label)
         except ReconError as exc:

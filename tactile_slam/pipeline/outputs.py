@@ -3,9 +3,9 @@
 Output folder (stable names; see ``docs/outputs.md``):
 
 * ``poses.npy`` (T, 4, 4) float64, metres: each video frame's sensor pose in the sensor
-  frame of the first contact frame of the *main* group (the group holding the first
-  contact frame); NaN rows for frames without contact or in a group not connected
-  to it.
+  frame of the first contact frame of the *main* group (the connected group with the
+  most frames with a pose; ties: the earliest); NaN rows for frames without contact or
+  in a group not connected to it.
 * ``poses_by_group.npy`` (T, 4, 4) and ``frame_group.npy`` (T,): every in-contact frame
   in the frame of its own group's first contact frame, and that group id (-1: none).
 * ``trajectory_tum.txt``: the rows of ``poses.npy`` with a pose, TUM format
@@ -60,12 +60,24 @@ def frame_poses(
     return poses, frame_group
 
 
+def main_group(frame_group: np.ndarray) -> int | None:
+    """The group with the most frames with a pose (ties: the one seen first), or
+    ``None`` without any. ``(T,)`` int64 -> label. A brief tap before a scan is its own
+    small group, so the first contact frame's group is not always the scan."""
+    posed = frame_group[frame_group >= 0]
+    if len(posed) == 0:
+        return None
+    labels, first, counts = np.unique(posed, return_index=True, return_counts=True)
+    order = np.lexsort((first, -counts))  # most frames, then earliest
+    return int(labels[order[0]])
+
+
 def main_group_poses(poses_by_group: np.ndarray, frame_group: np.ndarray) -> np.ndarray:
-    """Keep the group of the first contact frame; NaN elsewhere. ``(T, 4, 4)``."""
+    """Keep the :func:`main_group`; NaN elsewhere. ``(T, 4, 4)``."""
     out = np.full_like(poses_by_group, np.nan)
-    contact = np.nonzero(frame_group >= 0)[0]
-    if len(contact):
-        sel = frame_group == frame_group[contact[0]]
+    label = main_group(frame_group)
+    if label is not None:
+        sel = frame_group == label
         out[sel] = poses_by_group[sel]
     return out
 

@@ -54,3 +54,20 @@ def test_held_press_does_not_move_and_balls_close_no_loop(run):
         poses = res.poses_by_group[label == i]
         rel = np.linalg.inv(poses[0]) @ poses
         assert np.abs(rel - np.eye(4)).max() < 1e-6, i
+
+
+def test_main_group_is_the_longest_not_a_first_tap(mini_data, tmp_path):
+    """A brief tap before the scan is its own group; ``poses.npy`` follows the group with
+    the most posed frames, in the frame of that group's first frame."""
+    root = mini_data / "calibration"
+    bg = cv2.imread(str(root / "background.png"))
+    tap, press = (cv2.imread(str(root / r / "gelsight.png")) for r in ("6.310mm/3", "9.500mm/2"))
+    frames = [bg] * 10 + [tap] * 2 + [bg] * 3 + [press] * 6 + [bg] * 2
+    write_video(tmp_path / "gelsight.avi", np.stack(frames), 25.0)
+    cfg = Config()
+    res = OfflinePipeline(open_source(tmp_path, cfg), cfg, tmp_path / "out", RunOptions(mesh=False, progress=False)).run()
+    assert res.stats["sessions"] == 2
+    has = np.isfinite(res.poses[:, 0, 0])
+    assert has.nonzero()[0].tolist() == list(range(15, 21))  # the press, not the tap
+    np.testing.assert_allclose(res.poses[15], np.eye(4), atol=1e-12)
+    assert np.isfinite(res.poses_by_group[10:12, 0, 0]).all()  # the tap keeps its own poses

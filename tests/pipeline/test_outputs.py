@@ -1,0 +1,21 @@
+"""Choosing the main group of a run (the frame of poses.npy)."""
+
+import numpy as np
+
+from tactile_slam.pipeline.outputs import main_group, main_group_poses
+
+
+def test_most_frames_wins_ties_go_to_the_earliest():
+    assert main_group(np.array([-1, -1])) is None
+    assert main_group(np.array([-1, 4, 4, -1, 7, 7, 7, -1])) == 7  # a 2-frame tap, then the scan
+    assert main_group(np.array([5, 5, -1, 2, 2])) == 5  # a tie: the group seen first
+    assert main_group(np.array([3, 9, 9, 3, 3])) == 3  # frames of a group need not be contiguous
+
+
+def test_main_group_poses_keeps_only_that_group():
+    groups = np.array([-1, 4, 4, 7, 7, 7])
+    by_group = np.tile(np.eye(4), (6, 1, 1))
+    by_group[0] = np.nan
+    out = main_group_poses(by_group, groups)
+    assert np.isnan(out[:3]).all() and np.array_equal(out[3:], by_group[3:])
+    assert np.isnan(main_group_poses(by_group[:1], groups[:1])).all()
