@@ -33,6 +33,29 @@ class ConfigError(ValueError):
     """A configuration file or value is invalid."""
 
 
+def resolve_device(name: str) -> str:
+    """A torch device name this machine has: ``"auto"`` -> ``"cuda"`` when present, else
+    ``"cpu"``; ``cpu``, ``cuda`` and ``cuda:N`` are checked. Raises :class:`ConfigError`
+    naming the device otherwise."""
+    import torch
+
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    try:
+        dev = torch.device(name)
+    except RuntimeError as exc:
+        raise ConfigError(f"unknown device {name!r} (use cpu, cuda, cuda:N or auto)") from exc
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            build = "a CPU-only build" if torch.version.cuda is None else f"CUDA {torch.version.cuda}, no GPU visible"
+            raise ConfigError(f"{name}: CUDA is not available (torch {torch.__version__}, {build})")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise ConfigError(f"{name}: only {torch.cuda.device_count()} CUDA device(s)")
+    elif dev.type != "cpu":
+        raise ConfigError(f"unsupported device {name!r} (use cpu, cuda, cuda:N or auto)")
+    return name
+
+
 @dataclass
 class SensorConfig:
     """Sensor geometry and timing.

@@ -45,14 +45,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def accuracy(res: RunResult, gt: np.ndarray) -> dict:
-    """Per-axis MAE (mm, degrees) of the largest group's frames, in the frame of its first frame."""
-    sel = res.frame_group >= 0
+    """Per-axis MAE (mm, degrees) of the main group's frames (the largest group: the rows
+    of ``poses.npy``), in the frame of its first frame."""
+    sel = np.isfinite(res.poses[:, 0, 0])
     if not sel.any():
         return {"n_frames": 0}
-    groups, counts = np.unique(res.frame_group[sel], return_counts=True)
-    sel &= res.frame_group == groups[np.argmax(counts)]
     first = int(np.nonzero(sel)[0][0])
-    mae = per_axis_mae(res.poses_by_group, np.linalg.inv(gt[first]) @ gt, sel)
+    mae = per_axis_mae(res.poses, np.linalg.inv(gt[first]) @ gt, sel)
     mae["translation_mm"] = float(np.mean([mae[k] for k in ("x_mm", "y_mm", "z_mm")]))
     mae["rotation_deg"] = float(np.mean([mae[k] for k in ("rx_deg", "ry_deg", "rz_deg")]))
     mae["group_frames"] = int(sel.sum())

@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from tactile_slam.backend import BackEnd
 from tactile_slam.calibration.model import GradientDecoder, load_model
-from tactile_slam.config import Config
+from tactile_slam.config import Config, resolve_device
 from tactile_slam.eval.trajectory import write_tum
 from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError
 from tactile_slam.io.dataset import FrameBatch, iter_batches
@@ -96,8 +96,7 @@ class OfflinePipeline:
         self.options = options or RunOptions()
         if self.options.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {self.options.method!r}")
-        if torch.device(self.options.device).type == "cuda" and not torch.cuda.is_available():
-            raise ValueError(f"device {self.options.device!r}: CUDA is not available (torch {torch.__version__})")
+        self.options = replace(self.options, device=resolve_device(self.options.device))
         self.visualizer = visualizer or NullVisualizer()
 
     # ------------------------------------------------------------------ set-up
