@@ -318,6 +318,8 @@ class Config:
         c = self.contact
         if c.height_fraction is not None and not 0.0 < c.height_fraction <= 1.0:
             raise ConfigError(f"contact.height_fraction must be in (0, 1] or None, got {c.height_fraction}")
+        if not 0.0 <= c.min_depth_mm < float("inf"):
+            raise ConfigError(f"contact.min_depth_mm must be a finite number >= 0, got {c.min_depth_mm}")
         return self.height_threshold_px, c.height_fraction, c.min_depth_mm / self.sensor.mm_per_px
 
     # ------------------------------------------------------------------ I/O

@@ -233,6 +233,12 @@ class TestDepthRule:
         assert cfg.depth_test == pytest.approx((0.2 / 0.0634, 0.5, 0.05 / 0.0634))
         cfg.contact.height_fraction = None
         assert cfg.depth_test[1] is None
-        cfg.contact.height_fraction = 1.5
-        with pytest.raises(ConfigError, match="height_fraction"):
-            FrameBuilder(cfg)
+        for bad in (1.5, 0.0, float("nan")):
+            cfg.contact.height_fraction = bad
+            with pytest.raises(ConfigError, match="height_fraction"):
+                FrameBuilder(cfg)
+        cfg.contact.height_fraction = 0.5
+        for bad in (-0.01, float("nan"), float("inf")):
+            cfg.contact.min_depth_mm = bad
+            with pytest.raises(ConfigError, match="min_depth_mm"):
+                FrameBuilder(cfg)

@@ -157,7 +157,7 @@ def test_cli_cuda_without_a_gpu_is_a_clear_error(tmp_path, capsys):
 def test_device_argument():
     assert device_arg("cpu") == "cpu"
     assert device_arg("auto") == ("cuda" if torch.cuda.is_available() else "cpu")
-    for bad in ("gpu", "mps", "cuda:99"):
+    for bad in ("", "gpu", "mps", "cuda:99"):
         with pytest.raises(argparse.ArgumentTypeError):
             device_arg(bad)
 
