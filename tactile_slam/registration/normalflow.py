@@ -165,15 +165,17 @@ def _level(points_t, normals_t, dn_t, valid, factor, jacobian) -> Level:
 
 def _outer_products(jac: torch.Tensor, chunk_samples: int = 8192) -> torch.Tensor:
     """Per-sample ``J_k^T J_k`` of a channels-first Jacobian: ``(B, 5, 3, K)`` ->
-    ``(B, K, 25)``. Elementwise over the contiguous sample axis (several times faster
-    than a batched product of 3x5 matrices), a few references at a time so the
-    intermediate stays in cache."""
+    ``(B, K, 25)``. Elementwise over the contiguous sample axis, accumulated in place
+    (several times faster than a batched product of 3x5 matrices), then stored
+    transposed; a few references at a time so the intermediate stays in cache."""
     b, _, _, k = jac.shape
     out = torch.empty((b, k, 25), dtype=jac.dtype, device=jac.device)
     step = max(1, chunk_samples // max(k, 1))
     for i in range(0, b, step):
         j = jac[i:i + step]
-        out[i:i + step] = sum(j[:, :, None, c] * j[:, None, :, c] for c in range(3)).view(-1, 25, k).mT
+        o = torch.mul(j[:, :, None, 0], j[:, None, :, 0])
+        o.addcmul_(j[:, :, None, 1], j[:, None, :, 1]).addcmul_(j[:, :, None, 2], j[:, None, :, 2])
+        out[i:i + step] = o.view(-1, 25, k).mT
     return out
 
 
@@ -230,12 +232,13 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
 
 
 def _spread(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
-    """RMS distance of the valid samples' ``(x, y)`` from their centroid, float64.
+    """RMS distance of the valid samples' ``(x, y)`` from their centroid, float64:
+    ``sqrt(mean |xy|^2 - |mean xy|^2)`` (padding points are zero).
     ``(B, K, 3)``, ``(B, K)`` -> ``(B,)``."""
     xy = points[..., :2].double()
-    vf = valid.double()[..., None]
-    centre = (xy * vf).sum(1, keepdim=True) / vf.sum(1, keepdim=True).clamp_min(1.0)
-    return (((xy - centre).square() * vf).sum((1, 2)) / vf.sum((1, 2)).clamp_min(1.0)).sqrt()
+    n = valid.sum(1, dtype=torch.float64).clamp_min(1.0)[:, None]
+    mean_sq = xy.square().sum(1) / n  # (B, 2)
+    return (mean_sq - (xy.sum(1) / n).square()).sum(1).clamp_min(0.0).sqrt()
 
 
 def _rows(maps: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
