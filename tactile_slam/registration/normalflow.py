@@ -30,7 +30,7 @@ from tactile_slam.config import NormalFlowConfig
 from tactile_slam.geometry.frame import Frame
 from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
 from tactile_slam.registration.result import RegistrationError, RegistrationResult, TrackingLost
-from tactile_slam.registration.sampling import select_samples
+from tactile_slam.registration.sampling import nonzero_2d, select_samples
 
 JACOBIANS = {"analytic": jacobian_analytic, "autograd": jacobian_autograd}
 
@@ -344,7 +344,7 @@ def _shared_normal_matrix(pairs: _Pairs, shared: torch.Tensor) -> torch.Tensor:
     b, k = shared.shape
     if pairs.jtj.shape[0] == 1:
         return (shared.double() @ pairs.jtj[0]).view(b, 5, 5)
-    pair, sample = (pairs.valid & ~shared).nonzero(as_tuple=True)
+    pair, sample = nonzero_2d(pairs.valid & ~shared)
     part = torch.zeros((b, 25), dtype=torch.float64, device=shared.device)
     part.index_add_(0, pair, pairs.jtj.view(-1, 25).index_select(0, sample + pair * k))
     return pairs.ata_full - part.view(b, 5, 5)

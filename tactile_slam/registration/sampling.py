@@ -6,9 +6,27 @@ references with different contact sizes share one batch.
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 SELECTIONS = ("topk", "threshold", "random")
+
+
+def flat_nonzero(mask: torch.Tensor) -> torch.Tensor:
+    """Indices of the true entries of a bool tensor, flattened row-major. On the CPU
+    numpy's one-dimensional scan, 2-5x faster than torch's ``nonzero`` on contact and
+    sample masks. ``(...)`` -> ``(M,)`` int64."""
+    if mask.device.type != "cpu":
+        return mask.reshape(-1).nonzero()[:, 0]
+    return torch.from_numpy(np.flatnonzero(mask.numpy()))
+
+
+def nonzero_2d(mask: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Row and column indices of the true entries of a ``(B, N)`` bool mask, row-major
+    (as ``mask.nonzero(as_tuple=True)``). ``(B, N)`` -> ``(rows (M,), cols (M,))`` int64."""
+    flat = flat_nonzero(mask)
+    n = mask.shape[1]
+    return flat // n, flat % n
 
 
 def mask_to_indices(mask: torch.Tensor, k: int | None = None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -25,11 +43,11 @@ def mask_to_indices(mask: torch.Tensor, k: int | None = None) -> tuple[torch.Ten
     b, n = mask.shape
     dev = mask.device
     if b == 1 and k is None:  # one row: a plain nonzero (the general path costs ~2.4x more)
-        idx = mask[0].nonzero()[:, 0]
+        idx = flat_nonzero(mask)
         if len(idx) == 0:
             return torch.zeros((1, 1), dtype=torch.int64, device=dev), torch.zeros((1, 1), dtype=torch.bool, device=dev)
         return idx[None], torch.ones((1, len(idx)), dtype=torch.bool, device=dev)
-    rows, cols = mask.nonzero(as_tuple=True)  # row-major order
+    rows, cols = nonzero_2d(mask)  # row-major order
     count = torch.bincount(rows, minlength=b)  # a bool sum would widen the whole mask to int64
     longest = int(count.max()) if b else 0
     if k is None:
@@ -110,7 +128,7 @@ def select_samples(
     if rule not in SELECTIONS:
         raise ValueError(f"sample selection must be one of {SELECTIONS}, got {rule!r}")
     b = curvature.shape[0]
-    a = curvature.reshape(b, -1).abs()
+    flat = curvature.reshape(b, -1)
     c = contact.reshape(b, -1)
     if n_samples is None:
         return mask_to_indices(c)
@@ -118,11 +136,12 @@ def select_samples(
         raise ValueError(f"n_samples must be >= 1 or None, got {n_samples}")
     if rule == "topk":  # over the contact pixels only (a few thousand of the image's pixels)
         pixel, inside = mask_to_indices(c)
-        pos, valid = top_k_indices(torch.where(inside, a.gather(1, pixel), -1.0), n_samples)
+        pos, valid = top_k_indices(torch.where(inside, flat.gather(1, pixel).abs(), -1.0), n_samples)
         return pixel.gather(1, pos), valid
     if rule == "random":
-        r = torch.rand(a.shape, generator=generator, dtype=torch.float64).to(a.device)
+        r = torch.rand(flat.shape, generator=generator, dtype=torch.float64).to(flat.device)
         return top_k_indices(torch.where(c, r, -1.0), n_samples)
+    a = flat.abs()
     k = min(n_samples, a.shape[1])
     tau = torch.topk(a, k, dim=1).values[:, -1:] + 1e-6
     return mask_to_indices(a >= tau)

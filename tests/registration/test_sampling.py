@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 import torch
 
-from tactile_slam.registration.sampling import mask_to_indices, select_samples, top_k_mask
+from tactile_slam.registration.sampling import flat_nonzero, mask_to_indices, nonzero_2d, select_samples, top_k_mask
 
 
 def _random_maps(b=2, h=30, w=40, seed=0, dtype=torch.float32):
@@ -10,6 +10,19 @@ def _random_maps(b=2, h=30, w=40, seed=0, dtype=torch.float32):
     contact = torch.rand((b, h, w), generator=g) > 0.4
     lap = (torch.randn((b, h, w), generator=g) * 0.2).clamp(-0.7, 0.7).to(dtype) * contact
     return lap, contact
+
+
+@pytest.mark.parametrize("shape", [(1, 0), (1, 7), (3, 50), (2, 30, 40)])
+@pytest.mark.parametrize("density", [0.0, 0.3, 1.0])
+def test_nonzero_matches_torch(device, shape, density):
+    mask = (torch.rand(shape, generator=torch.Generator().manual_seed(1)) < density).to(device)
+    flat = flat_nonzero(mask)
+    assert flat.dtype == torch.int64 and flat.device == mask.device
+    assert torch.equal(flat, mask.reshape(-1).nonzero()[:, 0])
+    if mask.dim() == 2:
+        rows, cols = nonzero_2d(mask)
+        ref_rows, ref_cols = mask.nonzero(as_tuple=True)
+        assert torch.equal(rows, ref_rows) and torch.equal(cols, ref_cols)
 
 
 class TestMaskToIndices:
