@@ -5,6 +5,8 @@ from __future__ import annotations
 import kornia
 import torch
 
+from tactile_slam.geometry.morphology import as_weights
+
 
 def normals_from_gradients(gradients: torch.Tensor) -> torch.Tensor:
     """Gel-surface unit normals ``N = (-gx, -gy, 1) / |.|`` (toward the object).
@@ -44,5 +46,5 @@ def curvature(
     """
     div = divergence(gradients).unsqueeze(1)
     blurred = kornia.filters.gaussian_blur2d(div, (ksize, ksize), (sigma, sigma), border_type="reflect")
-    lap = blurred.squeeze(1) * contact.to(blurred.dtype)
+    lap = blurred.squeeze(1) * as_weights(contact, blurred.dtype)
     return lap.clamp(-clip, clip)

@@ -28,6 +28,7 @@ from scipy.linalg.lapack import dposv
 
 from tactile_slam.config import NormalFlowConfig
 from tactile_slam.geometry.frame import Frame
+from tactile_slam.geometry.morphology import as_weights
 from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
 from tactile_slam.registration.result import RegistrationError, RegistrationResult, TrackingLost
 from tactile_slam.registration.sampling import nonzero_2d, select_samples
@@ -366,7 +367,7 @@ def _linearise(pairs: _Pairs, motion: torch.Tensor, align_corners: bool) -> tupl
     near = _sample(pairs.c_map, grid, "nearest", align_corners).view(b, k)
     shared = (near > 0.5) & _inside(grid) & pairs.valid
     res = torch.bmm(motion[:, 2:, :3], _sample(pairs.n_map, grid, "bilinear", align_corners)) - pairs.normals_t
-    atb = _bmv(pairs.jacobian_t, (res * shared.unsqueeze(1)).view(b, 3 * k))
+    atb = _bmv(pairs.jacobian_t, (res * as_weights(shared, res.dtype).unsqueeze(1)).view(b, 3 * k))
     return _shared_normal_matrix(pairs, shared), atb, shared.sum(1, dtype=torch.int32)
 
 
@@ -497,7 +498,7 @@ def _register_levels(prep: PreparedReference, tar: Frame, init: np.ndarray, conf
     b = len(tar)
     dev, dt = prep.device, prep.dtype
     n_map = tar.normals.to(device=dev, dtype=dt).permute(0, 3, 1, 2)  # a view: no copy
-    c_map = tar.contact.to(device=dev, dtype=dt).unsqueeze(1)
+    c_map = as_weights(tar.contact.to(dev), dt).unsqueeze(1)
     flags = np.zeros(b, dtype=bool)
     st = _State(np.broadcast_to(init[:, :3, :3], (b, 3, 3)).copy(), np.broadcast_to(init[:, :2, 3], (b, 2)).copy(),
                 ~flags, flags.copy(), flags.copy(), np.zeros(b, dtype=np.int64), np.zeros((b, 5, 5)))

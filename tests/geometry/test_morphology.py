@@ -1,7 +1,7 @@
 import pytest
 import torch
 
-from tactile_slam.geometry.morphology import dilate, erode, fill_holes
+from tactile_slam.geometry.morphology import as_weights, dilate, erode, fill_holes
 
 
 @pytest.mark.parametrize("size", [3, 5, 7, 15])
@@ -43,3 +43,11 @@ def test_fill_holes_backends_agree_and_keep_open_regions():
     assert cpu[:, 9:14, 9:14].all()
     assert not cpu[1, 0:5, 33:37].any()
     torch.testing.assert_close(cpu, fill_holes(m, backend="torch"))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_as_weights_is_the_float_mask(device, dtype):
+    mask = torch.rand((2, 5, 7), generator=torch.Generator().manual_seed(0)) > 0.5
+    w = as_weights(mask.to(device), dtype)
+    assert w.dtype == dtype and w.shape == mask.shape and w.device.type == torch.device(device).type
+    assert torch.equal(w.cpu(), mask.to(dtype))
