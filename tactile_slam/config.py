@@ -156,7 +156,7 @@ class NormalFlowConfig:
 
     n_samples: int | None = 3000
     max_iters: int = 50
-    min_iters: int = 7
+    min_iters: int = 1
     rot_tol: float = 1e-4
     trans_tol_m: float = 1e-5
     min_shared: int = 10

@@ -139,9 +139,10 @@ def run(args) -> Path:
         "normalflow": NormalFlowConfig(),
         "normalflow_coarse4": NormalFlowConfig(coarse_factors=(4,)),
         "normalflow_fallback16-4": NormalFlowConfig(fallback_factors=(16, 4)),
-        "threshold_rule (public GelSLAM selection)": NormalFlowConfig(selection="threshold"),
+        "normalflow_min7 (reference's >= 7 iterations)": NormalFlowConfig(min_iters=7),
+        "threshold_rule (public GelSLAM selection)": NormalFlowConfig(selection="threshold", min_iters=7),
         "old_normalflow (random 5000, no checks)": NormalFlowConfig(selection="random", n_samples=5000,
-                                                                    check_scores=False),
+                                                                    check_scores=False, min_iters=7),
     }
     methods: dict = {}
     for name, nf_cfg in variants.items():
@@ -200,7 +201,7 @@ def run(args) -> Path:
     sweep = []
     for n_samples in (250, 500, 1000, 3000, None):
         for cap in (10, 20, 50):
-            c = NormalFlowConfig(n_samples=n_samples, max_iters=cap, min_iters=min(7, cap))
+            c = NormalFlowConfig(n_samples=n_samples, max_iters=cap)
             res, samples = _timed_nf(refs, tars, c, max(args.repeats // 2, 1), sync)
             s = summarise(res, truth, args)
             s.pop("per_pair")
