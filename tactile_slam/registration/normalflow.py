@@ -108,18 +108,31 @@ class PreparedReference:
         levels = [_coarse_level(normals_map, points_t.mT, valid, self.m_per_px, f, jacobian)
                   for f in sorted(factors, reverse=True)]
         levels.append(Level(*(take(x) for x in (fine.normals_t, fine.jacobian_t, fine.jtj, fine.ata_full)), 1))
-        return PreparedReference(points_t, take(self.curvature), take(self.spread), valid, levels, self.shape,
+        prep = PreparedReference(points_t, take(self.curvature), take(self.spread), valid, levels, self.shape,
                                  self.m_per_px, normals_map)
+        _check_reference_finite(prep)  # the coarse levels read the normal map around the samples
+        return prep
 
     @property
     def device(self) -> torch.device:
         return self.points_t.device
 
 
-def _check_finite(frame: Frame, what: str) -> None:
-    total = frame.normals.sum() + frame.height.sum() + frame.curvature.sum()
+def _check_reference_finite(prep: "PreparedReference") -> None:
+    """NaN or Inf in what the reference contributes (sample points, normals, curvature,
+    the normal map's derivatives behind every level's Jacobian) is an input error. Only
+    the values read are checked: a scan of the full maps would cost several times its
+    own time in evicted cache on the CPU."""
+    total = prep.points_t.sum() + prep.curvature.sum()
+    for lvl in prep.levels:
+        total = total + lvl.normals_t.sum() + lvl.jacobian_t.sum()
     if not bool(torch.isfinite(total)):
-        raise RegistrationError(f"{what} frame contains NaN or Inf in its normals, height or curvature")
+        raise RegistrationError("reference frame contains NaN or Inf in its normals, height or curvature "
+                                "at the samples")
+
+
+def _target_error(what: str) -> RegistrationError:
+    return RegistrationError(f"target frame contains NaN or Inf in its {what} where the samples land")
 
 
 def _check_config(config: NormalFlowConfig, shape: tuple[int, int] | None = None) -> None:
@@ -213,7 +226,6 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     _check_config(config, ref.shape)
     if len(ref) == 0:
         raise RegistrationError("empty reference batch")
-    _check_finite(ref, "reference")
     dtype = dtype or ref.normals.dtype
     b, h, w = ref.height.shape
     s = ref.mm_per_px / 1000.0
@@ -228,8 +240,10 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
               for f in sorted(config.coarse_factors, reverse=True)]
     dn_t = sobel_at(normals_map, idx).permute(0, 2, 3, 1) / s  # (B, 3, 2, K)
     levels.append(_level(points.mT, normals.mT, dn_t, valid, 1, config.jacobian))
-    return PreparedReference(points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s,
+    prep = PreparedReference(points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s,
                              normals_map)
+    _check_reference_finite(prep)
+    return prep
 
 
 def _spread(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -414,6 +428,8 @@ def _gauss_newton(st: _State, pairs: _Pairs, scale: np.ndarray, align_corners: b
         motion = torch.from_numpy(_motion(cur.rot, cur.txy, scale, host_dt)).to(dev)
         ata, atb, n_shared = (x.cpu().numpy() for x in _linearise(pairs, motion, align_corners))
         atb = atb.astype(np.float64)
+        if not np.isfinite(atb).all():  # finite Jacobians and poses: the sampled target normals
+            raise _target_error("normals")
         cur.ata = ata
         delta, solved = _solve(ata, atb, ridge, config.lm_damping)
         # too few shared samples, or an unsolvable step: lost (the pose stays as it was)
@@ -473,7 +489,6 @@ def register_prepared(
         raise RegistrationError(f"target size {tuple(tar.shape)} differs from reference size {prep.shape}")
     if abs(tar.mm_per_px / 1000.0 - prep.m_per_px) > 1e-12:
         raise RegistrationError(f"target scale {tar.mm_per_px} mm/px differs from the reference's")
-    _check_finite(tar, "target")
     init = np.eye(4)[None] if init_tar_T_ref is None else _host_init(init_tar_T_ref, b)
     res = _register_levels(prep, tar, init, config)
     if not config.fallback_factors or bool(res.ok.all()):
@@ -546,7 +561,10 @@ def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig,
     inside = (_inside(grid) & prep.valid).unsqueeze(1)
     rows = torch.cat([_sample(c_map, grid, "nearest"), _sample(h_map, grid, "bilinear"),
                       _sample(c_map, grid, "bilinear"), _sample(l_map, grid, "bilinear"), proj[:, 2:], inside], 1)
-    near, h_tar, c_tar, l_tar, z, inside = rows.cpu().numpy().astype(np.float64).transpose(1, 0, 2)  # (B, K) each
+    rows = rows.cpu().numpy().astype(np.float64)
+    if not np.isfinite(rows).all():
+        raise _target_error("height or curvature")
+    near, h_tar, c_tar, l_tar, z, inside = rows.transpose(1, 0, 2)  # (B, K) each
     inside = inside > 0.5
     l_ref = prep.curvature.cpu().numpy().astype(np.float64)  # (B or 1, K)
     with np.errstate(divide="ignore", invalid="ignore"):  # undefined scores are NaN and fail below

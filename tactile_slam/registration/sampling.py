@@ -9,6 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from tactile_slam.registration.result import RegistrationError
+
 SELECTIONS = ("topk", "threshold", "random")
 
 
@@ -100,6 +102,13 @@ def top_k_indices(score: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tens
     return mask_to_indices(torch.zeros_like(score, dtype=torch.bool).scatter_(1, ids, vals >= 0))
 
 
+def _check_scores(score: torch.Tensor) -> None:
+    """NaN would silently drop a pixel from the ranking (and Inf take its place): either
+    is an input error."""
+    if not bool(torch.isfinite(score.sum())):
+        raise RegistrationError("reference curvature contains NaN or Inf at contact pixels")
+
+
 def select_samples(
     curvature: torch.Tensor,
     contact: torch.Tensor,
@@ -136,12 +145,15 @@ def select_samples(
         raise ValueError(f"n_samples must be >= 1 or None, got {n_samples}")
     if rule == "topk":  # over the contact pixels only (a few thousand of the image's pixels)
         pixel, inside = mask_to_indices(c)
-        pos, valid = top_k_indices(torch.where(inside, flat.gather(1, pixel).abs(), -1.0), n_samples)
+        score = torch.where(inside, flat.gather(1, pixel).abs(), -1.0)
+        _check_scores(score)
+        pos, valid = top_k_indices(score, n_samples)
         return pixel.gather(1, pos), valid
     if rule == "random":
         r = torch.rand(flat.shape, generator=generator, dtype=torch.float64).to(flat.device)
         return top_k_indices(torch.where(c, r, -1.0), n_samples)
     a = flat.abs()
+    _check_scores(a)  # this rule ranks the whole image
     k = min(n_samples, a.shape[1])
     tau = torch.topk(a, k, dim=1).values[:, -1:] + 1e-6
     return mask_to_indices(a >= tau)

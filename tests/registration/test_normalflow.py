@@ -13,6 +13,7 @@ from tactile_slam.registration.normalflow import (
     register_prepared,
 )
 from tactile_slam.registration.result import RegistrationError, RegistrationResult, TrackingLost, pose_error
+from tactile_slam.registration.sampling import select_samples
 
 from .surfaces import Surface, as_dtype, bumpy, frames, rigid
 
@@ -257,17 +258,53 @@ class TestFailures:
         assert T.shape == (4, 4) and float(pose_error(T[None], truth[1:2])[1]) < 0.01
 
 
+def _sampled_pixel(frame) -> tuple[int, int]:
+    """The NormalFlow sample (default top-k) nearest the contact's centre of mass."""
+    idx, _ = select_samples(frame.curvature, frame.contact, NormalFlowConfig().n_samples)
+    r, c = idx[0] // frame.shape[1], idx[0] % frame.shape[1]
+    i = int(((r - r.float().mean()) ** 2 + (c - c.float().mean()) ** 2).argmin())
+    return int(r[i]), int(c[i])
+
+
 class TestBadInput:
-    def test_nan_and_inf_maps(self, scene):
+    @pytest.mark.parametrize("field", ["normals", "height", "curvature"])
+    @pytest.mark.parametrize("value", [float("nan"), float("inf")])
+    def test_nan_and_inf_in_the_reference(self, scene, field, value):
         ref, tars, _, _ = scene
-        bad = tars[:1].normals.clone()
-        bad[0, 100, 100, 0] = float("nan")
-        with pytest.raises(RegistrationError, match="target.*NaN"):
-            register(ref, replace(tars[:1], normals=bad))
-        bad_h = ref.height.clone()
-        bad_h[0, 5, 5] = float("inf")
+        bad = getattr(ref, field).clone()
+        bad[(0, *_sampled_pixel(ref))] = value
         with pytest.raises(RegistrationError, match="reference.*NaN or Inf"):
-            register(replace(ref, height=bad_h), tars[:1])
+            register(replace(ref, **{field: bad}), tars[:1])
+
+    @pytest.mark.parametrize("field", ["normals", "height", "curvature"])
+    def test_nan_in_a_target(self, scene, field):
+        """A batch with one bad target raises (an input error, not a failed pair). The
+        targets are the reference itself, so the samples land on their own pixels."""
+        ref = scene[0]
+        bad = getattr(ref, field).clone()
+        bad[(0, *_sampled_pixel(ref))] = float("nan")
+        with pytest.raises(RegistrationError, match="target.*NaN or Inf"):
+            register(ref, Frame.cat([ref, replace(ref, **{field: bad})]))
+
+    def test_unread_pixels_are_not_checked(self, scene):
+        """Only the values NormalFlow reads must be finite: a NaN in an image corner far from
+        every sample leaves the result unchanged."""
+        ref, tars, _, _ = scene
+        bad_ref, bad_tar = ref.height.clone(), tars[:1].normals.clone()
+        bad_ref[0, 0, 0], bad_tar[0, 0, 0, 0] = float("inf"), float("nan")
+        a = register(ref, tars[:1])
+        b = register(replace(ref, height=bad_ref), replace(tars[:1], normals=bad_tar))
+        assert torch.equal(a.tar_T_ref, b.tar_T_ref) and torch.equal(a.ok, b.ok)
+
+    def test_nan_reference_normals_under_the_fallback_levels(self):
+        """The fallback's coarse levels average the normal map in blocks around the samples."""
+        f = frames(bumpy(1), [EYE, rigid(tx_mm=1.5, ty_mm=-0.75)])
+        r, c = _sampled_pixel(f[0])
+        bad = f[0].normals.clone()
+        bad[0, r - r % 16 + 15, c - c % 16, 2] = float("nan")  # same 16x16 block as the sample
+        ref = replace(f[0], normals=bad)
+        with pytest.raises(RegistrationError, match="reference.*NaN or Inf"):
+            register(ref, f[1], None, NormalFlowConfig(fallback_factors=(16, 4)))
 
     def test_bad_init(self, scene):
         ref, tars, _, _ = scene

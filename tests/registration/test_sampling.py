@@ -106,3 +106,15 @@ def test_all_pixels_when_n_is_none():
     lap, contact = _random_maps()
     idx, valid = select_samples(lap, contact, None)
     assert valid.sum(1).tolist() == contact.reshape(2, -1).sum(1).tolist()
+
+
+@pytest.mark.parametrize("rule", ["topk", "threshold"])
+@pytest.mark.parametrize("value", [float("nan"), float("inf")])
+def test_non_finite_curvature_in_the_contact_is_an_error(device, rule, value):
+    from tactile_slam.registration.result import RegistrationError
+
+    lap, contact = _random_maps()
+    r, c = contact[0].nonzero()[0]
+    lap[0, r, c] = value
+    with pytest.raises(RegistrationError, match="NaN or Inf"):
+        select_samples(lap.to(device), contact.to(device), 100, rule)
