@@ -168,11 +168,11 @@ def metric_points(height: torch.Tensor, idx: torch.Tensor, m_per_px: float) -> t
 def _level(points_t, normals_t, dn_t, valid, factor, jacobian) -> Level:
     """Jacobian rows and normal matrices for points and normals ``(B, 3, K)`` and the
     normals' derivatives per metre ``(B, 3, 2, K)``, in the dtype of ``points_t``.
-    The normal matrices are built from the Jacobian rounded to that dtype, the values
-    the right-hand sides use."""
+    The normal matrices are float64 products of that Jacobian, the values the
+    right-hand sides use."""
     b, k = valid.shape
-    jac = JACOBIANS[jacobian](points_t.double(), normals_t.double(), dn_t.double())  # (B, 5, 3, K)
-    jac_t = (jac * valid[:, None, None]).to(points_t.dtype).reshape(b, 5, 3 * k)  # columns channel-major
+    jac = JACOBIANS[jacobian](points_t, normals_t, dn_t)  # (B, 5, 3, K)
+    jac_t = (jac * as_weights(valid, jac.dtype)[:, None, None]).reshape(b, 5, 3 * k)  # columns channel-major
     j64 = jac_t.double()
     return Level(normals_t.contiguous(), jac_t, _outer_products(j64.view(b, 5, 3, k)), torch.bmm(j64, j64.mT), factor)
 
