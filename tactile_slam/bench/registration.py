@@ -7,7 +7,9 @@ from the identity. Accuracy is the geodesic rotation error (deg) and the transla
 error (mm) against the known motion; a pair is "wrong" when either exceeds
 ``--wrong-deg`` / ``--wrong-mm``; "rejected" when the method reports failure; "false
 accept" when it is wrong but not rejected. Times are wall-clock per call on the chosen
-device, after warm-up. The speed-accuracy trade sweeps ``n_samples`` and the iteration cap.
+device, after warm-up; the NormalFlow variants take turns pair by pair so that a drift of
+the machine's speed does not favour one. The speed-accuracy trade sweeps ``n_samples``
+and the iteration cap.
 """
 
 from __future__ import annotations
@@ -104,19 +106,22 @@ def summarise(res: RegistrationResult, truth: torch.Tensor, args) -> dict:
     }
 
 
-def _timed_nf(refs: list[Frame], tars: list[Frame], cfg: NormalFlowConfig, repeats: int, sync: bool,
-              prepared: list[float] | None = None):
-    """Per-pair results and per-call time samples of single-pair NormalFlow (reference
-    preparation included). ``prepared``, if given, receives the times of the same calls
-    against an already prepared reference (the tracking case: one keyframe, many frames)."""
-    results, samples = [], []
+def _timed_nf(refs: list[Frame], tars: list[Frame], configs: dict[str, NormalFlowConfig], repeats: int,
+              sync: bool) -> dict[str, tuple[RegistrationResult, list[float], list[float]]]:
+    """Per-pair results and per-call time samples of single-pair NormalFlow for each
+    configuration: ``(results, register times (preparation included), times against an
+    already prepared reference (the tracking case: one keyframe, many frames))``. The
+    configurations take turns pair by pair, so a drift of the machine's speed during
+    the run (several percent on this one) does not favour whichever runs later."""
+    out = {name: ([], [], []) for name in configs}
     for ref, tar in zip(refs, tars):
-        results.append(register(ref, tar, None, cfg))
-        samples += time_fn(lambda: register(ref, tar, None, cfg), repeats, warmup=1, sync_cuda=sync)
-        if prepared is not None:
+        for name, cfg in configs.items():
+            results, samples, prepared = out[name]
+            results.append(register(ref, tar, None, cfg))
+            samples += time_fn(lambda: register(ref, tar, None, cfg), repeats, warmup=1, sync_cuda=sync)
             prep = prepare_reference(ref, cfg)
             prepared += time_fn(lambda: register_prepared(prep, tar, None, cfg), repeats, warmup=1, sync_cuda=sync)
-    return RegistrationResult.cat(results), samples
+    return {name: (RegistrationResult.cat(r), s, p) for name, (r, s, p) in out.items()}
 
 
 def run(args) -> Path:
@@ -145,9 +150,7 @@ def run(args) -> Path:
                                                                     check_scores=False, min_iters=7),
     }
     methods: dict = {}
-    for name, nf_cfg in variants.items():
-        prepared: list[float] = []
-        res, samples = _timed_nf(refs, tars, nf_cfg, args.repeats, sync, prepared)
+    for name, (res, samples, prepared) in _timed_nf(refs, tars, variants, args.repeats, sync).items():
         methods[name] = {"time_per_pair": timing_stats(samples), "time_per_pair_prepared": timing_stats(prepared),
                          "all": summarise(res, truth, args),
                          "per_object": {o: summarise(res[torch.tensor([x == o for x in obj_of])],
@@ -202,7 +205,7 @@ def run(args) -> Path:
     for n_samples in (250, 500, 1000, 3000, None):
         for cap in (10, 20, 50):
             c = NormalFlowConfig(n_samples=n_samples, max_iters=cap)
-            res, samples = _timed_nf(refs, tars, c, max(args.repeats // 2, 1), sync)
+            res, samples, _ = _timed_nf(refs, tars, {"sweep": c}, max(args.repeats // 2, 1), sync)["sweep"]
             s = summarise(res, truth, args)
             s.pop("per_pair")
             sweep.append({"n_samples": n_samples or "all", "max_iters": cap,
