@@ -51,3 +51,8 @@ def test_as_weights_is_the_float_mask(device, dtype):
     w = as_weights(mask.to(device), dtype)
     assert w.dtype == dtype and w.shape == mask.shape and w.device.type == torch.device(device).type
     assert torch.equal(w.cpu(), mask.to(dtype))
+
+
+def test_as_weights_of_a_numeric_mask_keeps_its_shape():
+    mask = torch.tensor([[0.0, 1.0, 1.0]])
+    assert torch.equal(as_weights(mask, torch.float64), mask.double())
