@@ -66,14 +66,14 @@ def add_arguments(parser) -> None:
                         help="also time fusion + meshing of N touches spread over a 120 mm lime")
 
 
-def system_run(episode_dir: Path, run_dir: Path, level: str, config: Config) -> tuple[list, dict, dict, dict]:
+def system_run(episode_dir: Path, run_dir: Path, config: Config) -> tuple[list, dict, dict, dict]:
     """Run the full system on a simulated episode.
 
     Returns:
         keyframes, ``{id: (4, 4) start_T_kf}`` float64 estimated poses, ``{id: group}``,
         and the run's statistics.
     """
-    source = open_source(episode_dir if level == "image" else episode_dir / "gt_gradients.npz")
+    source = open_source(episode_dir)
     result = OfflinePipeline(source, config, run_dir, RunOptions(progress=False, mesh=False)).run()
     records = json.loads((run_dir / "keyframes.json").read_text())
     poses = {r["id"]: torch.tensor(r["pose"], dtype=torch.float64) for r in records}
@@ -128,7 +128,7 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
     simulate_episode(ep, SimulationSettings(object=name, kind="scan", seed=args.seed, frames=frames,
                                             level=args.level, size_mm=size))
     t1 = time.perf_counter()
-    keyframes, est, groups, run_stats = system_run(ep, run_dir, args.level, config)
+    keyframes, est, groups, run_stats = system_run(ep, run_dir, config)
     t2 = time.perf_counter()
     episode = read_episode(ep)
     gt_mesh = episode.mesh()

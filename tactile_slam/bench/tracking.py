@@ -228,7 +228,7 @@ def loop_scores(run_dir: Path, episode_dir: Path, config: Config) -> dict:
     return out
 
 
-def run_method(spec: EpisodeSpec, episode_dir: Path, method: str, run_dir: Path, config: Config) -> dict:
+def run_method(episode_dir: Path, method: str, run_dir: Path, config: Config) -> dict:
     """Run one method on one episode and score it; also returns the per-frame errors."""
     from tactile_slam.io.dispatch import open_source
     from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
@@ -240,7 +240,7 @@ def run_method(spec: EpisodeSpec, episode_dir: Path, method: str, run_dir: Path,
         np.save(run_dir / "poses.npy", poses)
         stats = {"timing_ms": {**timing, "total": timing["geometry"] + timing["registration"]}}
     else:
-        source = open_source(episode_dir if spec.level == "image" else episode_dir / "gt_gradients.npz", config)
+        source = open_source(episode_dir, config)
         res = OfflinePipeline(source, config, run_dir, RunOptions(method=method, mesh=False, progress=False)).run()
         stats = res.stats
     wall = time.perf_counter() - t0
@@ -429,7 +429,7 @@ def run(args) -> Path:
                      "level": spec.level, "frames": spec.frames, "table": spec.table,
                      "simulate_or_load_s": time.perf_counter() - t0, "methods": {}}
             for m in spec.methods:
-                res, err = run_method(spec, ep_dir, m, work / spec.name / m, config)
+                res, err = run_method(ep_dir, m, work / spec.name / m, config)
                 entry["methods"][m] = res
                 errors.setdefault((spec.table, m, spec.object), []).append(err)
                 mae = res["per_axis_mae"]

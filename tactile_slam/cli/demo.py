@@ -84,7 +84,7 @@ def slam_demo(out: Path, obj: str, frames: int, seed: int) -> dict:
     level = "image" if image_level else "gradients"
     episode = simulate_episode(out / "episode", SimulationSettings(object=obj, kind="contact_loss", seed=seed,
                                                                    frames=frames, level=level), cfg)
-    source = open_source(episode if image_level else episode / "gt_gradients.npz", cfg)
+    source = open_source(episode, cfg)
     result = OfflinePipeline(source, cfg, out / "run", RunOptions(method="gelslam")).run()
     metrics, series = evaluate_run(out / "run", episode, recon=False)
     (out / "run" / "metrics.json").write_text(json.dumps(metrics, indent=2))

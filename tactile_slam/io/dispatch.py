@@ -8,7 +8,7 @@ from tactile_slam.config import Config
 from tactile_slam.geometry.frame import InputError
 from tactile_slam.io.camera import CameraSource
 from tactile_slam.io.frames import FrameSource
-from tactile_slam.io.gradients import CONTACT_NPY, GRADIENTS_NPY, GradientSequence
+from tactile_slam.io.gradients import CONTACT_NPY, EPISODE_NPZ, GRADIENTS_NPY, GradientSequence
 from tactile_slam.io.images import ImageFolder, list_images
 from tactile_slam.io.scan import VIDEO_NAME, Scan
 from tactile_slam.io.video import VIDEO_SUFFIXES, VideoSource
@@ -60,8 +60,10 @@ def open_source(spec: str | Path, config: Config | None = None, resize: bool = F
             return GradientSequence(path, fps=sensor.fps, shape=sensor.shape)
         if list_images(path):
             return ImageFolder(path, fps=sensor.fps, shape=sensor.shape, resize=resize)
+        if (path / EPISODE_NPZ).is_file():  # a gradient-level simulated episode (no video)
+            return GradientSequence(path / EPISODE_NPZ, fps=sensor.fps, shape=sensor.shape)
         raise InputError(
-            f"{path} holds no {VIDEO_NAME}, no {GRADIENTS_NPY} and no images: nothing to read"
+            f"{path} holds no {VIDEO_NAME}, no {GRADIENTS_NPY}, no {EPISODE_NPZ} and no images: nothing to read"
         )
     if not path.exists():
         raise InputError(f"input not found: {path}")

@@ -23,6 +23,7 @@ from tactile_slam.io.frames import RawFrame, SequenceSource
 
 GRADIENTS_NPY = "gradient_maps.npy"
 CONTACT_NPY = "contact_masks.npy"
+EPISODE_NPZ = "gt_gradients.npz"  # a simulated episode's gradient record (tactile_slam.sim.episode)
 GRADIENTS_KEY = "gradients"
 CONTACT_KEY = "contact"
 

@@ -36,13 +36,15 @@ import yaml
 from tactile_slam.config import MODELS_DIR, REPO_ROOT, Config
 from tactile_slam.eval.tracking_metrics import motion_range
 from tactile_slam.eval.trajectory import relative_to
+from tactile_slam.io.gradients import EPISODE_NPZ
+from tactile_slam.io.scan import VIDEO_NAME
 from tactile_slam.sim.motions import Motion, MotionConfig, make_motion
 from tactile_slam.sim.objects import OBJECTS, resolve_object
 from tactile_slam.sim.renderer import GelRenderer, RenderConfig
 
 LEVELS = ("gradients", "image")
 VIDEO, BACKGROUND, POSES, CONTACT, GRADIENTS, MESH, META = (
-    "gelsight.avi", "background.png", "gt_poses.npy", "in_contact.npy", "gt_gradients.npz", "object.ply", "meta.yaml")
+    VIDEO_NAME, "background.png", "gt_poses.npy", "in_contact.npy", EPISODE_NPZ, "object.ply", "meta.yaml")
 DEFAULT_COLOUR_MODEL = MODELS_DIR / "gelsight_mini_colour.pt"
 SHARED_BACKGROUND = REPO_ROOT.parent / "shared" / "data" / "gelsight_mini" / "calibration" / "background.png"
 

@@ -59,6 +59,23 @@ class TestOpenSource:
             src = open_source(spec, small_config)
             assert isinstance(src, GradientSequence) and len(src) == 3 and src.fps == 30.0
 
+    def test_gradient_level_episode_folder(self, tmp_path, small_config):
+        """A simulated gradient-level episode (no video) opens through its gt_gradients.npz;
+        an image-level one (video and gt_gradients.npz) reads the video."""
+        g = np.random.default_rng(0).normal(0, 0.1, (3, 48, 64, 2)).astype(np.float16)
+        c = np.zeros((3, 48, 64), bool)
+        c[1, 10:20, 10:30] = True
+        ep = tmp_path / "ep"
+        ep.mkdir()
+        np.savez(ep / "gt_gradients.npz", gradients=g, contact=c)
+        (ep / "meta.yaml").write_text("level: gradients\n")
+        src = open_source(ep, small_config)
+        assert isinstance(src, GradientSequence) and len(src) == 3
+        frame = next(iter(src))
+        assert np.allclose(np.asarray(frame.gradients), g[0].astype(np.float32))
+        with pytest.raises(InputError, match="no gt_gradients.npz"):
+            open_source(tmp_path, small_config)  # holds only the episode folder
+
     def test_camera(self, monkeypatch):
         class Fake:
             def __init__(self):
