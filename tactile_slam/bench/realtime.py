@@ -22,7 +22,7 @@ import torch
 from tactile_slam.bench.common import write_json
 from tactile_slam.config import Config
 from tactile_slam.eval.tracking_metrics import per_axis_mae
-from tactile_slam.io.gradients import GradientSequence
+from tactile_slam.io.gradients import EPISODE_NPZ, GradientSequence
 from tactile_slam.io.replay import LoopedSource
 from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions, RunResult
 from tactile_slam.pipeline.online import OnlineOptions, OnlinePipeline
@@ -69,7 +69,7 @@ def run(args) -> Path:
             Path(tmp) / "episode", SimulationSettings(object=args.object, kind=args.kind, frames=args.frames,
                                                       seed=args.seed))
         gt_once = read_episode(ep).object_T_sensor
-        base = GradientSequence(ep / "gt_gradients.npz", fps=Config().sensor.fps)
+        base = GradientSequence(ep / EPISODE_NPZ, fps=Config().sensor.fps)
         results = {"episode": {"object": args.object, "kind": args.kind, "frames": len(base), "seed": args.seed},
                    "rate": args.rate, "fps": base.fps, "buffer_frames": args.buffer_frames,
                    "tracker_threads": args.tracker_threads, "backend_threads": args.backend_threads,

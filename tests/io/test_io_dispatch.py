@@ -76,6 +76,22 @@ class TestOpenSource:
         with pytest.raises(InputError, match="no gt_gradients.npz"):
             open_source(tmp_path, small_config)  # holds only the episode folder
 
+    @pytest.mark.parametrize("bad, message", [("nan", "frame 1 contain NaN"), ("shape", "working size is 64x48"),
+                                              ("empty", "empty")])
+    def test_bad_gradient_level_episode(self, tmp_path, small_config, bad, message):
+        """The episode's gradient record is checked like any gradient sequence."""
+        g = np.zeros((0 if bad == "empty" else 2, 48, 64 if bad != "shape" else 63, 2), np.float32)
+        if bad == "nan":
+            g[1, 5, 5, 0] = np.nan
+        c = np.zeros(g.shape[:3], bool)
+        ep = tmp_path / "ep"
+        ep.mkdir()
+        np.savez(ep / "gt_gradients.npz", gradients=g, contact=c)
+        with pytest.raises(InputError, match=message):
+            src = open_source(ep, small_config)
+            for _ in src:
+                pass
+
     def test_camera(self, monkeypatch):
         class Fake:
             def __init__(self):
