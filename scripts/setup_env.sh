@@ -27,7 +27,7 @@ if sys.version_info < (3, 11):
 PY
 
 [ -x "$VENV/bin/python" ] || "$PYTHON" -m venv "$VENV"
-PIP=("$VENV/bin/python" -m pip install -q --disable-pip-version-check)
+PIP=("$VENV/bin/python" -m pip install -q --no-cache-dir --disable-pip-version-check)
 "${PIP[@]}" torch==2.13.0
 "${PIP[@]}" -e ".[test]"
 "$VENV/bin/python" -c "import torch, open3d, cv2, kornia, pypose; print('setup: torch', torch.__version__, '| open3d', open3d.__version__, '| opencv', cv2.__version__)"
