@@ -37,6 +37,13 @@ def machine_info() -> dict[str, Any]:
     return info
 
 
+def median_per_key(dicts: list[dict]) -> dict[str, float]:
+    """Per-key median of numeric dicts, over the dicts that hold the key (NaN values
+    are skipped too), e.g. the per-stage ``timing_ms`` of several runs."""
+    keys = sorted({k for d in dicts for k in d})
+    return {k: float(np.nanmedian([d.get(k, np.nan) for d in dicts])) for k in keys}
+
+
 def timing_stats(samples_s: list[float] | np.ndarray) -> dict[str, float]:
     """Median, IQR, p95, mean in milliseconds from samples in seconds."""
     a = np.asarray(samples_s, dtype=np.float64) * 1000.0

@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile_slam.bench.common import write_json
+from tactile_slam.bench.common import median_per_key, write_json
 from tactile_slam.cli.eval import evaluate_run
 from tactile_slam.config import Config
 from tactile_slam.eval.loop_metrics import gt_loop_pairs, loop_precision_recall
@@ -291,7 +291,7 @@ def summarise(episodes: list[dict], errors: dict) -> dict:
             eps = [e["methods"][m] for obj_eps in per_obj.values() for e in obj_eps]
             row = {"label": LABELS[m], "objects": objs, "mean_over_objects": mean, "mean_objects": kept,
                    "estimated_fraction": float(np.mean([e["estimated_fraction"] for e in eps])),
-                   "timing_ms_median": _median_dicts([e["timing_ms"] for e in eps])}
+                   "timing_ms_median": median_per_key([e["timing_ms"] for e in eps])}
             if any("keyframes" in e for e in eps):
                 row["keyframes_mean"] = float(np.mean([e.get("keyframes", 0) for e in eps]))
                 row["sessions_mean"] = float(np.mean([e.get("sessions", 0) for e in eps]))
@@ -303,14 +303,9 @@ def summarise(episodes: list[dict], errors: dict) -> dict:
                                 "precision": cor / rep if rep else float("nan"),
                                 "gt_loops": gt, "found": found, "recall": found / gt if gt else float("nan"),
                                 "episodes_with_false_loops": sum(x["false"] > 0 for x in le)}
-                row["timing_ms_per_keyframe_median"] = _median_dicts([e.get("timing_ms_per_keyframe", {}) for e in eps])
+                row["timing_ms_per_keyframe_median"] = median_per_key([e.get("timing_ms_per_keyframe", {}) for e in eps])
             out[table][m] = row
     return out
-
-
-def _median_dicts(ds: list[dict]) -> dict:
-    keys = sorted({k for d in ds for k in d})
-    return {k: float(np.nanmedian([d.get(k, np.nan) for d in ds])) for k in keys}
 
 
 BEATS_MARGIN = 1e-9  # smallest relative rotation reduction that counts as "below"

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import importlib
 
-BENCHMARKS = ("calibration", "geometry", "io", "loops", "posegraph", "reconstruction", "realtime", "registration",
+BENCHMARKS = ("calibration", "geometry", "io", "loops", "pipeline", "posegraph", "reconstruction", "realtime", "registration",
               "render", "tracking")
 
 
