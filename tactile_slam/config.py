@@ -152,6 +152,12 @@ class NormalFlowConfig:
     through coarse levels of these factors, e.g. ``(16, 4)`` (empty: no retry); only
     failures pay for it. For registration from a poor initial guess; off by default
     because the tracker needs a failure to make a keyframe (docs/registration.md).
+    ``cpu_chunk_samples``: on the CPU a batch of pairs with their own references is
+    solved in chunks of ``cpu_chunk_samples // n_samples`` pairs (at least 1), each
+    prepared and solved to the end before the next, so that its samples, Jacobians and
+    target maps stay in cache across its iterations (0: the whole batch at once). One
+    reference for every target, and other devices, always run the whole batch. Results
+    do not depend on it beyond rounding.
     """
 
     n_samples: int | None = 3000
@@ -171,6 +177,7 @@ class NormalFlowConfig:
     coarse_factors: tuple[int, ...] = ()
     coarse_max_iters: int = 20
     fallback_factors: tuple[int, ...] = ()
+    cpu_chunk_samples: int = 48_000
 
 
 @dataclass

@@ -99,17 +99,21 @@ class PreparedReference:
     def dtype(self) -> torch.dtype:
         return self.points_t.dtype
 
+    def __getitem__(self, i: slice | torch.Tensor) -> "PreparedReference":
+        """The references ``i`` (a slice or an index tensor), all of their levels."""
+        levels = [Level(lvl.normals_t[i], lvl.jacobian_t[i], lvl.jtj[i], lvl.ata_full[i], lvl.factor)
+                  for lvl in self.levels]
+        return PreparedReference(self.points_t[i], self.curvature[i], self.spread[i], self.valid[i], levels,
+                                 self.shape, self.m_per_px, self.normals_map[i])
+
     def retry_levels(self, ids: np.ndarray | None, factors: tuple[int, ...], jacobian: str) -> "PreparedReference":
         """The references ``ids`` (all if ``None``) with coarse levels ``factors`` in
         front of the full-resolution level: the pyramid of the fallback solve."""
-        take = (lambda x: x) if ids is None else (lambda x: x[torch.from_numpy(ids).to(x.device)])
-        points_t, valid, normals_map = take(self.points_t), take(self.valid), take(self.normals_map)
-        fine = self.levels[-1]
-        levels = [_coarse_level(normals_map, points_t.mT, valid, self.m_per_px, f, jacobian)
+        sub = self if ids is None else self[torch.from_numpy(ids).to(self.device)]
+        levels = [_coarse_level(sub.normals_map, sub.points, sub.valid, self.m_per_px, f, jacobian)
                   for f in sorted(factors, reverse=True)]
-        levels.append(Level(*(take(x) for x in (fine.normals_t, fine.jacobian_t, fine.jtj, fine.ata_full)), 1))
-        prep = PreparedReference(points_t, take(self.curvature), take(self.spread), valid, levels, self.shape,
-                                 self.m_per_px, normals_map)
+        prep = PreparedReference(sub.points_t, sub.curvature, sub.spread, sub.valid, [*levels, sub.levels[-1]],
+                                 self.shape, self.m_per_px, sub.normals_map)
         _check_reference_finite(prep)  # the coarse levels read the normal map around the samples
         return prep
 
@@ -140,6 +144,8 @@ def _check_config(config: NormalFlowConfig, shape: tuple[int, int] | None = None
         raise RegistrationError(f"normalflow.jacobian must be one of {tuple(JACOBIANS)}, got {config.jacobian!r}")
     if config.max_iters < 1 or config.min_iters < 1 or config.coarse_max_iters < 1:
         raise RegistrationError("normalflow.max_iters, min_iters and coarse_max_iters must be >= 1")
+    if config.cpu_chunk_samples < 0:
+        raise RegistrationError(f"normalflow.cpu_chunk_samples must be >= 0, got {config.cpu_chunk_samples}")
     if config.lm_damping < 0:
         raise RegistrationError(f"normalflow.lm_damping must be >= 0, got {config.lm_damping}")
     for name in ("coarse_factors", "fallback_factors"):
@@ -490,6 +496,30 @@ def register_prepared(
     if abs(tar.mm_per_px / 1000.0 - prep.m_per_px) > 1e-12:
         raise RegistrationError(f"target scale {tar.mm_per_px} mm/px differs from the reference's")
     init = np.eye(4)[None] if init_tar_T_ref is None else _host_init(init_tar_T_ref, b)
+    # one reference: its samples are shared by the batch; chunks would only add calls
+    step = b if len(prep) == 1 else _chunk_pairs(config, prep.points_t.shape[2], prep.device)
+    if b <= step:
+        return _register_with_fallback(prep, tar, init, config)
+    return RegistrationResult.cat([
+        _register_with_fallback(prep[a:a + step], tar[a:a + step], init if len(init) == 1 else init[a:a + step],
+                                config)
+        for a in range(0, b, step)])
+
+
+def _chunk_pairs(config: NormalFlowConfig, k: int, device: torch.device) -> int:
+    """Pairs solved together: ``config.cpu_chunk_samples // k`` (at least 1) on the CPU,
+    unbounded elsewhere or when it is 0 (``k``: samples per pair)."""
+    if device.type != "cpu" or config.cpu_chunk_samples == 0:
+        return np.iinfo(np.int64).max
+    return max(1, config.cpu_chunk_samples // max(k, 1))
+
+
+def _register_with_fallback(prep: PreparedReference, tar: Frame, init: np.ndarray, config: NormalFlowConfig
+                            ) -> RegistrationResult:
+    """Solve (:func:`_register_levels`), then retry the failures through
+    ``config.fallback_factors`` if set. Arguments already checked; ``init`` host
+    float64 ``(1 or B, 4, 4)``."""
+    b = len(tar)
     res = _register_levels(prep, tar, init, config)
     if not config.fallback_factors or bool(res.ok.all()):
         return res
@@ -616,7 +646,22 @@ def register(
     Returns:
         ``B`` results; failed pairs have ``ok = False``.
     """
-    return register_prepared(prepare_reference(ref, config, dtype), tar, init_tar_T_ref, config)
+    config = config or NormalFlowConfig()
+    _check_config(config)
+    b = len(ref)
+    if b > 1:
+        k = config.n_samples or int(ref.contact.reshape(b, -1).sum(1).max())  # samples per pair (at most)
+        step = _chunk_pairs(config, k, ref.normals.device)
+    if b <= 1 or b <= step:  # one chunk (or one reference for every target)
+        return register_prepared(prepare_reference(ref, config, dtype), tar, init_tar_T_ref, config)
+    if len(tar) != b:
+        raise RegistrationError(f"{b} references cannot be paired with {len(tar)} targets")
+    # each chunk prepared just before it is solved, so its references are still in cache
+    init = None if init_tar_T_ref is None else _host_init(init_tar_T_ref, b)
+    return RegistrationResult.cat([
+        register_prepared(prepare_reference(ref[a:a + step], config, dtype), tar[a:a + step],
+                          None if init is None else init if len(init) == 1 else init[a:a + step], config)
+        for a in range(0, b, step)])
 
 
 def register_pair(

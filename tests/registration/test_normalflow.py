@@ -119,6 +119,56 @@ def test_pairs_finishing_at_different_iterations(scene, own_references):
         assert int(one.iterations[0]) == int(res.iterations[j]) and bool(one.converged[0]) == bool(res.converged[j])
 
 
+class TestCpuChunks:
+    """On the CPU, pairs with their own references are prepared and solved
+    ``cpu_chunk_samples // n_samples`` at a time; the result is the whole batch's."""
+
+    @pytest.mark.parametrize("fallback", [(), (16, 4)])
+    def test_chunks_give_the_whole_batch_result(self, scene, fallback):
+        ref, tars, _, init = scene
+        init = init.clone()
+        init[[2, 6]] = rigid(rz_deg=120)  # far starts: failures, pairs at the cap, the fallback's retries
+        refs = Frame.cat([ref] * len(tars))
+        whole_cfg = NormalFlowConfig(n_samples=1000, cpu_chunk_samples=0, fallback_factors=fallback)
+        chunk_cfg = replace(whole_cfg, cpu_chunk_samples=3000)  # 3 pairs a chunk: 4 chunks of 11 pairs
+        whole = register(refs, tars, init, whole_cfg)
+        assert not bool(whole.ok.all())  # failures too (the fallback's path)
+        for chunked in (register(refs, tars, init, chunk_cfg),
+                        register_prepared(prepare_reference(refs, chunk_cfg), tars, init, chunk_cfg)):
+            _close(chunked, whole, rot_deg=1e-5, trans_mm=1e-6)
+            for name in ("iterations", "converged", "n_shared"):
+                assert torch.equal(getattr(chunked, name), getattr(whole, name)), name
+            assert torch.allclose(chunked.ccs, whole.ccs, atol=1e-6, equal_nan=True)
+
+    def test_chunk_size(self, scene, monkeypatch):
+        import importlib
+
+        nf = importlib.import_module("tactile_slam.registration.normalflow")
+        sizes = []
+        solve = nf._register_with_fallback
+        monkeypatch.setattr(nf, "_register_with_fallback", lambda p, t, i, c: sizes.append(len(t)) or solve(p, t, i, c))
+        ref, tars, _, init = scene
+        cfg = NormalFlowConfig(n_samples=1000, cpu_chunk_samples=3500)
+        register(Frame.cat([ref] * len(tars)), tars, init, cfg)
+        assert sizes == [3, 3, 3, 2]
+        sizes.clear()
+        register(ref, tars, init, cfg)  # one reference for all: never split
+        assert sizes == [len(tars)]
+        assert nf._chunk_pairs(cfg, 1000, torch.device("cuda")) >= 2 ** 62  # other devices: whole batch
+        assert nf._chunk_pairs(replace(cfg, cpu_chunk_samples=0), 1000, torch.device("cpu")) >= 2 ** 62
+        assert nf._chunk_pairs(cfg, 5000, torch.device("cpu")) == 1
+
+    def test_bad_setting(self, scene):
+        ref, tars, _, _ = scene
+        with pytest.raises(RegistrationError, match="cpu_chunk_samples"):
+            register(ref, tars[:1], None, NormalFlowConfig(cpu_chunk_samples=-1))
+
+    def test_mismatched_batch(self, scene):
+        ref, tars, _, _ = scene
+        with pytest.raises(RegistrationError, match="cannot be paired"):
+            register(Frame.cat([ref] * 4), tars[:3], None, NormalFlowConfig(n_samples=1000, cpu_chunk_samples=1000))
+
+
 def test_prepared_reference_is_reused(scene, batched):
     ref, tars, _, init = scene
     prep = prepare_reference(ref)
