@@ -117,7 +117,7 @@ class BackEnd:
         self.stats = BackEndStats()
         self.sessions = SessionGroups()
         self.gate = (LoopGate(drift_model(config), config.loop.merge_min_pairs, config.loop.doubt_factor,
-                               config.loop.merge_distinct)
+                               config.loop.merge_distinct, config.loop.merge_cycles)
                      if config.loop.consistency else None)
         self._last_in_session: dict[int, int] = {}
         self._group_view = _KeyframeView(self.keyframes, self.sessions.group_of)  # -> group id

@@ -228,7 +228,9 @@ class LoopConfig:
     # in between, and across groups, it waits until merge_min_pairs agreeing loops come
     # from distinct query keyframes ("queries": separate detections) or from distinct
     # keyframes on both sides ("both": rarely met, the coverage set often leaves one
-    # candidate keyframe per region, so sessions did not merge after contact loss)
+    # candidate keyframe per region, so sessions did not merge after contact loss);
+    # merge_cycles: three single loops between three groups that compose to the identity
+    # within the drift tolerance also merge them (short sessions after contact loss)
     consistency: bool = True
     drift_base_rot_deg: float = 3.0
     drift_base_trans_mm: float = 0.5
@@ -237,6 +239,7 @@ class LoopConfig:
     doubt_factor: float = 5.0
     merge_min_pairs: int = 2
     merge_distinct: str = "queries"
+    merge_cycles: bool = True
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
     coverage_depth_gate_mm: float | None = None  # count overlap only within this depth

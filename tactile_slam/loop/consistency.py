@@ -14,9 +14,10 @@ tell; the map can:
   Far beyond the tolerance a loop is rejected; a little beyond it (a tracker that slipped,
   or a false match one period away) it needs corroboration, as below.
 * **across groups** no prediction exists; :class:`LoopGate` holds such loops until enough
-  of them, from distinct keyframes on both sides, agree on the transform between the two
+  of them, found by distinct query keyframes, agree on the transform between the two
   groups (:func:`implied_transform`, each checked through another like a loop within one
-  group).
+  group), or until single loops between three groups close a cycle (:func:`cycle_residual`):
+  the transforms they imply compose to the identity within the drift tolerance.
 
 :class:`MotionGraph` keeps the weighted adjacency incrementally (one entry per factor) and
 answers bounded shortest-path queries, so a check costs the size of the neighbourhood it
@@ -109,6 +110,29 @@ def implied_transform(start_T_a: torch.Tensor, a_T_b: torch.Tensor, start_T_b: t
     return start_T_a @ a_T_b @ se3.inverse(start_T_b)
 
 
+def cycle_residual(start_T_ends: torch.Tensor, ends_T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Prediction and measurement of the last loop of a cycle of loops between groups.
+
+    Loop ``i`` joins keyframe ``x_i`` of group ``G_i`` to ``y_i`` of ``G_{i+1}`` (the last
+    one back to ``G_0``); it implies ``G_i_T_G_{i+1} = start_T_x_i  x_i_T_y_i  start_T_y_i^-1``
+    (:func:`implied_transform`). The loops before the last imply ``G_0_T_G_{n-1}``, which
+    predicts the last loop's measurement ``x_{n-1}_T_y_{n-1}``.
+
+    Args:
+        start_T_ends: ``(n, 2, 4, 4)`` float64 ``start_T_x_i``, ``start_T_y_i`` in their groups.
+        ends_T: ``(n, 4, 4)`` float64 ``x_i_T_y_i`` (metres).
+
+    Returns:
+        ``(predicted, measured)``, each ``(4, 4)``: the last loop as the other loops predict
+        it and as measured (equal when the cycle closes).
+    """
+    first_T_last = torch.eye(4, dtype=torch.float64)
+    for i in range(len(ends_T) - 1):
+        first_T_last = first_T_last @ implied_transform(start_T_ends[i, 0], ends_T[i], start_T_ends[i, 1])
+    x, y = start_T_ends[-1]
+    return se3.inverse(x) @ se3.inverse(first_T_last) @ y, ends_T[-1]
+
+
 class MotionGraph:
     """Undirected keyframe graph, each edge weighted by the motion it measures (mm)."""
 
@@ -163,6 +187,12 @@ class PendingLoop:
     ``groups`` the group(s) of its ends when last evaluated; ``recheck``: other loops were
     accepted for the same groups, so it is checked against the estimate at the next step."""
 
+    def oriented(self, group_of, g: int) -> tuple[int, int, torch.Tensor]:
+        """``(x, y, x_T_y)``: this loop with ``x`` in group ``g``."""
+        if group_of(self.a_id) == g:
+            return self.a_id, self.b_id, self.a_T_b
+        return self.b_id, self.a_id, se3.inverse(self.a_T_b)
+
     a_id: int
     b_id: int
     a_T_b: torch.Tensor
@@ -179,14 +209,17 @@ class GateStats:
     tolerance (the others left out of an accepted set meet the corrected estimate the same
     way); ``doubtful``: loops within a group beyond the tolerance but within that, held
     pending (cumulative); ``deferred``: loops between groups held pending (cumulative);
-    ``ambiguous``: evaluations where two disagreeing sets of loops both had enough support
-    (no merge); ``pending``: loops waiting now.
+    ``ambiguous``: evaluations where two disagreeing sets of loops both had enough support,
+    or a closed cycle that another loop between its groups contradicts (no merge);
+    ``cycles``: cycles of three groups closed by single loops (each merges three groups);
+    ``pending``: loops waiting now.
     """
 
     rejected_consistency: int = 0
     doubtful: int = 0
     deferred: int = 0
     ambiguous: int = 0
+    cycles: int = 0
     pending: int = 0
 
 
@@ -220,13 +253,20 @@ class LoopGate:
             ``min_pairs`` distinct query keyframes (separate detections; their candidates
             may be one keyframe, which is all the coverage set keeps of a small region);
             ``"both"``, distinct keyframes on both sides.
+        cycles: also accept three loops between three groups (A-B, B-C, C-A), found by at
+            least ``min_pairs`` (and two) distinct query keyframes, whose implied transforms compose to the identity within
+            the drift tolerance of the paths between their ends, when no other waiting loop
+            between those groups contradicts them by more than ``doubt_factor`` times it:
+            short sessions after contact loss seldom give two loops to the same group, but a
+            later session often touches two earlier ones, and a false loop rarely closes a
+            cycle. The three groups merge.
 
     The caller reports every factor it adds (:meth:`add_factor`) and calls :meth:`select`
     once per keyframe with its verified loops, after the keyframe's node and odometry are in.
     """
 
     def __init__(self, model: DriftModel, min_pairs: int = 2, doubt_factor: float = 5.0,
-                 distinct: str = "queries") -> None:
+                 distinct: str = "queries", cycles: bool = True) -> None:
         if min_pairs < 1 or doubt_factor < 1.0:
             raise ValueError(f"need min_pairs >= 1 and doubt_factor >= 1, got {min_pairs}, {doubt_factor}")
         if distinct not in DISTINCT:
@@ -235,6 +275,7 @@ class LoopGate:
         self.min_pairs = min_pairs
         self.distinct = distinct
         self.doubt_factor = doubt_factor
+        self.cycles = cycles
         self._limit = model.scaled(doubt_factor).half_turn_path_mm()  # drift paths searched up to this
         self.motion = MotionGraph(model.lever_mm)
         self.pending: list[PendingLoop] = []
@@ -276,18 +317,37 @@ class LoopGate:
         for p in self.pending:
             if p.groups in dirty:
                 dirty[p.groups].append(p)
-        merges = []
+        merges, merged, open_keys = [], set(), []
         for key, members in dirty.items():
             chosen = self._evaluate(members, group_of, pose)
-            if chosen is not None:
+            if chosen is None:
+                open_keys += [key] if len(key) == 2 else []
+                continue
+            accepted += [p.loop for p in chosen]
+            if len(key) == 2:
+                merges.append((chosen[0].b_id, chosen[0].a_id, chosen[0].a_T_b))
+                merged |= key
+            self._take(chosen, members)
+        for key in open_keys if self.cycles else []:
+            if key & merged:
+                continue  # its groups change now; re-evaluated as a new pair at the next keyframe
+            cycle = self._close_cycle(key, group_of, pose, merged)
+            if cycle is not None:
+                chosen, members = cycle
                 accepted += [p.loop for p in chosen]
-                if len(key) == 2:
-                    merges.append((chosen[0].b_id, chosen[0].a_id, chosen[0].a_T_b))
-                self.pending = [p for p in self.pending if not any(p is q for q in chosen)]
-                for p in members:  # the others meet the corrected estimate at the next keyframe
-                    p.recheck = True
+                merges += [(p.b_id, p.a_id, p.a_T_b) for p in chosen[:2]]
+                merged |= {group_of(p.a_id) for p in chosen} | {group_of(p.b_id) for p in chosen}
+                self._take(chosen, members)
+                self.stats.cycles += 1
         self.stats.pending = len(self.pending)
         return Selection(accepted, merges)
+
+    def _take(self, chosen: list[PendingLoop], members: list[PendingLoop]) -> None:
+        """Remove accepted loops from the pending ones; the other ``members`` (loops between
+        the same groups) meet the corrected estimate at the next keyframe."""
+        self.pending = [p for p in self.pending if not any(p is q for q in chosen)]
+        for p in members:
+            p.recheck = True
 
     # ------------------------------------------------------------------ within a group
     def _check_within(self, loops: list[PendingLoop], pose) -> list:
@@ -352,3 +412,63 @@ class LoopGate:
             self.stats.ambiguous += 1
             return None
         return [members[q] for q in sorted(best)]
+
+    # ------------------------------------------------------------------ cycles of groups
+    def _close_cycle(self, key: frozenset, group_of, pose,
+                     skip: set) -> tuple[list[PendingLoop], list[PendingLoop]] | None:
+        """Three pending loops A-B (the pair ``key``), B-C, C-A that close a cycle (see
+        ``cycles``), C not in ``skip``; returns ``(loops in that order, every pending loop
+        between the three groups)`` or None. The loops must come from at least ``min_pairs``
+        (and two) distinct query keyframes, the support :meth:`_evaluate` asks of two groups."""
+        between: dict[frozenset, list[PendingLoop]] = {}
+        for p in self.pending:
+            if len(p.groups) == 2:
+                between.setdefault(p.groups, []).append(p)
+        g_a, g_b = sorted(key)
+        third = sorted({g for k in between if g_a in k for g in k} & {g for k in between if g_b in k for g in k}
+                       - {g_a, g_b} - skip)
+        paths: dict[tuple[int, int], float] = {}
+
+        def path(i: int, j: int) -> float:
+            if (i, j) not in paths:
+                paths[(i, j)] = self.motion.paths(i, [j], self._limit)[j]
+            return paths[(i, j)]
+
+        contradicted = False
+        for g_c in third:
+            legs = [between[key], between[frozenset((g_b, g_c))], between[frozenset((g_c, g_a))]]
+            for chosen in ((p, q, r) for p in legs[0] for q in legs[1] for r in legs[2]):
+                if len({p.b_id for p in chosen}) < max(self.min_pairs, 2):
+                    continue
+                ends = [p.oriented(group_of, g) for p, g in zip(chosen, (g_a, g_b, g_c))]
+                start_T = torch.stack([torch.stack([pose(x), pose(y)]) for x, y, _ in ends])
+                pred, meas = cycle_residual(start_T, torch.stack([T.double() for _, _, T in ends]))
+                drift = torch.tensor([path(ends[2][1], ends[0][0]) + path(ends[0][1], ends[1][0])
+                                      + path(ends[1][1], ends[2][0])], dtype=torch.float64)
+                if not bool(consistent(pred[None], meas[None], drift, self.model)):
+                    continue
+                members = legs[0] + legs[1] + legs[2]
+                if self._contradicted(chosen, members, group_of, pose):
+                    contradicted = True
+                    continue
+                return list(chosen), members
+        self.stats.ambiguous += contradicted
+        return None
+
+    def _contradicted(self, chosen: tuple, members: list[PendingLoop], group_of, pose) -> bool:
+        """Whether a pending loop among ``members`` disagrees with the transform between its
+        groups that ``chosen`` (loops between the same three groups) implies by more than
+        ``doubt_factor`` times the drift tolerance."""
+        model = self.model.scaled(self.doubt_factor)
+        for q in members:
+            if any(q is p for p in chosen):
+                continue
+            p = next(p for p in chosen if p.groups == q.groups)
+            x, y, T = p.oriented(group_of, group_of(q.a_id))
+            G_T_H = implied_transform(pose(x), T, pose(y))
+            pred = se3.inverse(pose(q.a_id)) @ G_T_H @ pose(q.b_id)
+            drift = torch.tensor([self.motion.paths(x, [q.a_id], self._limit)[q.a_id]
+                                  + self.motion.paths(y, [q.b_id], self._limit)[q.b_id]], dtype=torch.float64)
+            if not bool(consistent(pred[None], q.a_T_b.double()[None], drift, model)):
+                return True
+        return False

@@ -10,7 +10,8 @@ import torch
 
 from tactile_slam.backend import BackEnd
 from tactile_slam.config import Config
-from tactile_slam.loop.consistency import DriftModel, LoopGate, MotionGraph, Selection, consistent, motion_mm
+from tactile_slam.loop.consistency import (DriftModel, LoopGate, MotionGraph, Selection, consistent, cycle_residual,
+                                          motion_mm)
 from tactile_slam.loop.detector import Loop
 from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
@@ -275,6 +276,105 @@ def test_pending_loops_are_checked_once_their_groups_join(two_sessions):
     _apply(Selection([joint], [(17, 12, joint.ref_T_tar)]), graph, groups, gate)
     sel = gate.select(29, [], groups.group_of, graph.pose)
     assert sel.accepted == [late] and gate.pending == [] and gate.stats.rejected_consistency == 1
+
+
+def test_cycle_residual_predicts_the_closing_loop():
+    """Three groups with their own start frames; loops measured from the true poses close
+    the cycle exactly, a half turn on one of them does not."""
+    true = arc(45)
+    starts = [true[0], true[15], true[30]]  # group start frames
+    local = lambda k: se3.inverse(starts[k // 15]) @ true[k]  # noqa: E731
+    ends = [(12, 17), (27, 32), (35, 5)]  # A-B, B-C, C-A
+    start_T = torch.stack([torch.stack([local(x), local(y)]) for x, y in ends])
+    meas = torch.stack([se3.inverse(true[x]) @ true[y] for x, y in ends])
+    pred, last = cycle_residual(start_T, meas)
+    assert torch.allclose(pred, last, atol=1e-12) and torch.equal(last, meas[-1])
+    meas[1] = se3.inverse(true[27]) @ SYMMETRY @ true[32]
+    rot, _ = pose_error(cycle_residual(start_T, meas)[0][None], meas[-1][None])
+    assert float(rot) == pytest.approx(180.0, abs=1e-6)
+
+
+@pytest.fixture()
+def three_sessions():
+    """Sessions 0 (keyframes 0-14), 1 (15-29) and 2 (30-44) on one arc, each in its own frame."""
+    true = arc(45)
+    graph, groups = PoseGraph(), SessionGroups()
+    factors = []
+    for k in range(45):
+        if groups.add_keyframe(k, k // 15):
+            graph.add_node(k)
+            graph.add_prior(k)
+        else:
+            Z = se3.inverse(true[k - 1]) @ true[k]
+            graph.add_node(k, graph.pose(k - 1) @ Z)
+            graph.add_between(k - 1, k, Z)
+            factors.append((k - 1, k, Z))
+    return true, graph, groups, factors
+
+
+def _gate(factors, **kw) -> LoopGate:
+    gate = LoopGate(MODEL, **kw)
+    for i, j, Z in factors:
+        gate.add_factor(i, j, Z)
+    return gate
+
+
+def test_three_single_loops_closing_a_cycle_merge_three_groups(three_sessions):
+    """Short sessions seldom give two loops to one group; one loop between each pair of
+    three groups, from distinct queries, that composes to the identity merges all three."""
+    true, graph, groups, factors = three_sessions
+    gate = _gate(factors)
+    rel = lambda r, t: se3.inverse(true[r]) @ true[t]  # noqa: E731
+    a_b, b_c, c_a = loop(12, 17, rel(12, 17)), loop(27, 32, rel(27, 32)), loop(5, 35, rel(5, 35))
+    assert gate.select(17, [a_b], groups.group_of, graph.pose).merges == []
+    assert gate.select(32, [b_c], groups.group_of, graph.pose).merges == []
+    sel = gate.select(35, [c_a], groups.group_of, graph.pose)
+    assert {(lp.ref_id, lp.tar_id) for lp in sel.accepted} == {(12, 17), (27, 32), (5, 35)}
+    assert len(sel.merges) == 2 and gate.pending == [] and gate.stats.cycles == 1
+    _apply(sel, graph, groups, gate)
+    assert len({groups.group_of(k) for k in range(45)}) == 1
+    solve(graph)
+    est = graph.poses()
+    rot, trans = pose_error(se3.inverse(est[0]) @ est, true)
+    assert float(rot.max()) < 1e-6 and float(trans.max()) < 1e-6
+
+
+@pytest.mark.parametrize("min_pairs, merges", [(2, True), (3, False)])
+def test_cycle_support_counts_distinct_queries(three_sessions, min_pairs, merges):
+    """Query 35 finds both older groups: with query 17's loop that is two detections, enough
+    for min_pairs 2 (as two loops between two groups would be), not for 3."""
+    true, graph, groups, factors = three_sessions
+    gate = _gate(factors, min_pairs=min_pairs)
+    rel = lambda r, t: se3.inverse(true[r]) @ true[t]  # noqa: E731
+    gate.select(17, [loop(12, 17, rel(12, 17))], groups.group_of, graph.pose)
+    sel = gate.select(35, [loop(5, 35, rel(5, 35)), loop(24, 35, rel(24, 35))], groups.group_of, graph.pose)
+    assert bool(sel.merges) == merges and len(sel.accepted) == (3 if merges else 0)
+    assert gate.stats.cycles == int(merges)
+
+
+def test_cycle_with_a_false_loop_or_switched_off_does_not_merge(three_sessions):
+    true, graph, groups, factors = three_sessions
+    rel = lambda r, t: se3.inverse(true[r]) @ true[t]  # noqa: E731
+    for false_leg, cycles in ((True, True), (False, False)):
+        gate = _gate(factors, cycles=cycles)
+        b_c = loop(27, 32, symmetric_false(true, 27, 32) if false_leg else rel(27, 32))
+        for t, lp in ((17, loop(12, 17, rel(12, 17))), (32, b_c), (35, loop(5, 35, rel(5, 35)))):
+            assert gate.select(t, [lp], groups.group_of, graph.pose).merges == []
+        assert len(gate.pending) == 3 and gate.stats.cycles == 0
+
+
+def test_contradicted_cycle_does_not_merge(three_sessions):
+    """A closed cycle, but another waiting loop between two of its groups (a half turn of a
+    symmetric object, from a distinct query) contradicts it: nothing merges."""
+    true, graph, groups, factors = three_sessions
+    gate = _gate(factors)
+    rel = lambda r, t: se3.inverse(true[r]) @ true[t]  # noqa: E731
+    gate.select(17, [loop(12, 17, rel(12, 17))], groups.group_of, graph.pose)
+    gate.select(19, [loop(3, 19, symmetric_false(true, 3, 19))], groups.group_of, graph.pose)
+    gate.select(32, [loop(27, 32, rel(27, 32))], groups.group_of, graph.pose)
+    sel = gate.select(35, [loop(5, 35, rel(5, 35))], groups.group_of, graph.pose)
+    assert sel.merges == [] and sel.accepted == [] and len(gate.pending) == 4
+    assert gate.stats.cycles == 0 and gate.stats.ambiguous >= 1
 
 
 def test_backend_config_defaults_build_a_gate():
