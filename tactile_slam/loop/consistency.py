@@ -16,7 +16,7 @@ tell; the map can:
 * **across groups** no prediction exists; :class:`LoopGate` holds such loops until enough
   of them, found by distinct query keyframes, agree on the transform between the two
   groups (:func:`implied_transform`, each checked through another like a loop within one
-  group), or until single loops between three groups close a cycle (:func:`cycle_residual`):
+  group), or until single loops between three groups close a cycle (:func:`closing_prediction`):
   the transforms they imply compose to the identity within the drift tolerance.
 
 :class:`MotionGraph` keeps the weighted adjacency incrementally (one entry per factor) and
@@ -110,27 +110,23 @@ def implied_transform(start_T_a: torch.Tensor, a_T_b: torch.Tensor, start_T_b: t
     return start_T_a @ a_T_b @ se3.inverse(start_T_b)
 
 
-def cycle_residual(start_T_ends: torch.Tensor, ends_T: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Prediction and measurement of the last loop of a cycle of loops between groups.
-
-    Loop ``i`` joins keyframe ``x_i`` of group ``G_i`` to ``y_i`` of ``G_{i+1}`` (the last
-    one back to ``G_0``); it implies ``G_i_T_G_{i+1} = start_T_x_i  x_i_T_y_i  start_T_y_i^-1``
-    (:func:`implied_transform`). The loops before the last imply ``G_0_T_G_{n-1}``, which
-    predicts the last loop's measurement ``x_{n-1}_T_y_{n-1}``.
+def closing_prediction(A_T_B: torch.Tensor, B_T_C: torch.Tensor, start_T_x: torch.Tensor,
+                       start_T_y: torch.Tensor) -> torch.Tensor:
+    """The loops that would close cycles of three groups A, B, C, as the other two predict them.
 
     Args:
-        start_T_ends: ``(n, 2, 4, 4)`` float64 ``start_T_x_i``, ``start_T_y_i`` in their groups.
-        ends_T: ``(n, 4, 4)`` float64 ``x_i_T_y_i`` (metres).
+        A_T_B: ``(n0, 4, 4)`` float64 transforms from group B's start frame into A's implied by
+            loops between A and B (:func:`implied_transform`).
+        B_T_C: ``(n1, 4, 4)`` the same for loops between B and C.
+        start_T_x, start_T_y: ``(n2, 4, 4)`` the ends of loops between C and A: keyframe
+            ``x`` in C and ``y`` in A, at their poses in their own groups.
 
     Returns:
-        ``(predicted, measured)``, each ``(4, 4)``: the last loop as the other loops predict
-        it and as measured (equal when the cycle closes).
+        ``(n0, n1, n2, 4, 4)`` predicted ``x_T_y`` for every combination (equal to the
+        measurements when the cycles close).
     """
-    first_T_last = torch.eye(4, dtype=torch.float64)
-    for i in range(len(ends_T) - 1):
-        first_T_last = first_T_last @ implied_transform(start_T_ends[i, 0], ends_T[i], start_T_ends[i, 1])
-    x, y = start_T_ends[-1]
-    return se3.inverse(x) @ se3.inverse(first_T_last) @ y, ends_T[-1]
+    C_T_A = se3.inverse(A_T_B[:, None] @ B_T_C[None])
+    return se3.inverse(start_T_x) @ C_T_A[:, :, None] @ start_T_y
 
 
 class MotionGraph:
@@ -419,7 +415,8 @@ class LoopGate:
         """Three pending loops A-B (the pair ``key``), B-C, C-A that close a cycle (see
         ``cycles``), C not in ``skip``; returns ``(loops in that order, every pending loop
         between the three groups)`` or None. The loops must come from at least ``min_pairs``
-        (and two) distinct query keyframes, the support :meth:`_evaluate` asks of two groups."""
+        (and two) distinct query keyframes, the support :meth:`_evaluate` asks of two groups.
+        Every combination of one loop per leg is checked in one batch."""
         between: dict[frozenset, list[PendingLoop]] = {}
         for p in self.pending:
             if len(p.groups) == 2:
@@ -437,15 +434,20 @@ class LoopGate:
         contradicted = False
         for g_c in third:
             legs = [between[key], between[frozenset((g_b, g_c))], between[frozenset((g_c, g_a))]]
-            for chosen in ((p, q, r) for p in legs[0] for q in legs[1] for r in legs[2]):
+            ends = [[p.oriented(group_of, g) for p in leg] for leg, g in zip(legs, (g_a, g_b, g_c))]
+            # G_i_T_G_i+1 implied by each loop of the first two legs; the last leg is predicted
+            A_T_B, B_T_C = (torch.stack([implied_transform(pose(x), T.double(), pose(y)) for x, y, T in leg])
+                            for leg in ends[:2])
+            pred = closing_prediction(A_T_B, B_T_C, torch.stack([pose(x) for x, _, _ in ends[2]]),
+                                      torch.stack([pose(y) for _, y, _ in ends[2]]))  # (n0, n1, n2, 4, 4)
+            meas = torch.stack([T.double() for _, _, T in ends[2]]).expand_as(pred)
+            drift = torch.tensor([[[path(e3[1], e1[0]) + path(e1[1], e2[0]) + path(e2[1], e3[0]) for e3 in ends[2]]
+                                   for e2 in ends[1]] for e1 in ends[0]], dtype=torch.float64)
+            ok = consistent(pred.reshape(-1, 4, 4), meas.reshape(-1, 4, 4), drift.reshape(-1), self.model)
+            for flat in torch.nonzero(ok).flatten().tolist():
+                i, rest = divmod(flat, len(legs[1]) * len(legs[2]))
+                chosen = (legs[0][i], legs[1][rest // len(legs[2])], legs[2][rest % len(legs[2])])
                 if len({p.b_id for p in chosen}) < max(self.min_pairs, 2):
-                    continue
-                ends = [p.oriented(group_of, g) for p, g in zip(chosen, (g_a, g_b, g_c))]
-                start_T = torch.stack([torch.stack([pose(x), pose(y)]) for x, y, _ in ends])
-                pred, meas = cycle_residual(start_T, torch.stack([T.double() for _, _, T in ends]))
-                drift = torch.tensor([path(ends[2][1], ends[0][0]) + path(ends[0][1], ends[1][0])
-                                      + path(ends[1][1], ends[2][0])], dtype=torch.float64)
-                if not bool(consistent(pred[None], meas[None], drift, self.model)):
                     continue
                 members = legs[0] + legs[1] + legs[2]
                 if self._contradicted(chosen, members, group_of, pose):

@@ -10,8 +10,8 @@ import torch
 
 from tactile_slam.backend import BackEnd
 from tactile_slam.config import Config
-from tactile_slam.loop.consistency import (DriftModel, LoopGate, MotionGraph, Selection, consistent, cycle_residual,
-                                          motion_mm)
+from tactile_slam.loop.consistency import (DriftModel, LoopGate, MotionGraph, Selection, closing_prediction,
+                                          consistent,                                           motion_mm)
 from tactile_slam.loop.detector import Loop
 from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
@@ -278,20 +278,25 @@ def test_pending_loops_are_checked_once_their_groups_join(two_sessions):
     assert sel.accepted == [late] and gate.pending == [] and gate.stats.rejected_consistency == 1
 
 
-def test_cycle_residual_predicts_the_closing_loop():
-    """Three groups with their own start frames; loops measured from the true poses close
-    the cycle exactly, a half turn on one of them does not."""
+def test_closing_prediction_of_every_combination():
+    """Three groups with their own start frames: loops measured from the true poses close the
+    cycle exactly, in every combination of one loop per leg; a half turn on one does not."""
     true = arc(45)
     starts = [true[0], true[15], true[30]]  # group start frames
     local = lambda k: se3.inverse(starts[k // 15]) @ true[k]  # noqa: E731
-    ends = [(12, 17), (27, 32), (35, 5)]  # A-B, B-C, C-A
-    start_T = torch.stack([torch.stack([local(x), local(y)]) for x, y in ends])
-    meas = torch.stack([se3.inverse(true[x]) @ true[y] for x, y in ends])
-    pred, last = cycle_residual(start_T, meas)
-    assert torch.allclose(pred, last, atol=1e-12) and torch.equal(last, meas[-1])
-    meas[1] = se3.inverse(true[27]) @ SYMMETRY @ true[32]
-    rot, _ = pose_error(cycle_residual(start_T, meas)[0][None], meas[-1][None])
-    assert float(rot) == pytest.approx(180.0, abs=1e-6)
+    implied = lambda x, T, y: local(x) @ T @ se3.inverse(local(y))  # noqa: E731
+    rel = lambda r, t: se3.inverse(true[r]) @ true[t]  # noqa: E731
+    A_T_B = torch.stack([implied(12, rel(12, 17), 17), implied(3, rel(3, 20), 20)])
+    B_T_C = torch.stack([implied(27, rel(27, 32), 32), implied(16, symmetric_false(true, 16, 40), 40),
+                         implied(29, rel(29, 31), 31)])
+    x, y = [35, 40], [5, 9]  # loops C -> A
+    pred = closing_prediction(A_T_B, B_T_C, torch.stack([local(k) for k in x]), torch.stack([local(k) for k in y]))
+    assert pred.shape == (2, 3, 2, 4, 4)
+    meas = torch.stack([rel(a, b) for a, b in zip(x, y)])
+    for j in (0, 2):
+        assert torch.allclose(pred[:, j], meas.expand(2, 2, 4, 4), atol=1e-12)
+    rot, _ = pose_error(pred[:, 1].reshape(-1, 4, 4), meas.repeat(2, 1, 1))
+    assert torch.allclose(rot, torch.full_like(rot, 180.0), atol=1e-6)
 
 
 @pytest.fixture()
