@@ -230,7 +230,8 @@ class LoopConfig:
     # keyframes on both sides ("both": rarely met, the coverage set often leaves one
     # candidate keyframe per region, so sessions did not merge after contact loss);
     # merge_cycles: three single loops between three groups that compose to the identity
-    # within the drift tolerance also merge them (short sessions after contact loss)
+    # within the drift tolerance also merge them (short sessions after contact loss); off:
+    # on a periodic texture it let one false merge through (docs/loops.md)
     consistency: bool = True
     drift_base_rot_deg: float = 3.0
     drift_base_trans_mm: float = 0.5
@@ -239,7 +240,7 @@ class LoopConfig:
     doubt_factor: float = 5.0
     merge_min_pairs: int = 2
     merge_distinct: str = "queries"
-    merge_cycles: bool = True
+    merge_cycles: bool = False
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
     coverage_depth_gate_mm: float | None = None  # count overlap only within this depth

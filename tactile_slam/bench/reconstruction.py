@@ -26,6 +26,7 @@ import json
 import tempfile
 import time
 from collections import Counter
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -119,8 +120,9 @@ def timing_run(n_touches: int, seed: int, config: Config) -> dict:
     return out
 
 
-def object_run(name: str, size_label: str, args, config: Config, work: Path) -> list[dict]:
-    """Simulate, run the system and score every variant of one object and size."""
+def object_run(name: str, size_label: str, args, config: Config, work: Path) -> Iterator[dict]:
+    """Simulate, run the system and score every variant of one object and size (one entry
+    per variant, as each is scored)."""
     size = SIZES_MM[name][0 if size_label == "small" else 1]
     ep, run_dir = work / f"{name}_{size_label}" / "episode", work / f"{name}_{size_label}" / "run"
     t0 = time.perf_counter()
@@ -134,7 +136,6 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
     gt_mesh = episode.mesh()
     system = {k: run_stats.get(k) for k in ("frames", "contact_frames", "keyframes", "sessions", "groups", "loops",
                                             "coverage_keyframes", "fps")}
-    out = []
     for variant in args.variants:
         kfs, poses, object_T_start = variant_input(variant, keyframes, est, groups, episode.object_T_sensor)
         entry = {"object": name, "size": size_label, "size_mm": size, "frames": frames, "level": args.level,
@@ -145,7 +146,7 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
         except ReconError as exc:  # e.g. a group of touches too small to fuse: recorded, the others go on
             entry["skipped"] = str(exc)
             print(f"{name:6s} {size_label:5s} {variant:9s} K {len(kfs):4d} skipped: {exc}", flush=True)
-            out.append(entry)
+            yield entry
             continue
         entry["stats"] = res.stats
         entry["mesh"] = recon_report(res.mesh.to_open3d(), gt_mesh, object_T_start, icp=True,
@@ -154,8 +155,7 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
         fused.compute_triangle_normals()
         entry["fused"] = {"gt_pose": surface_metrics(fused, gt_mesh, args.samples, args.seed)}
         print(_line(entry), flush=True)
-        out.append(entry)
-    return out
+        yield entry
 
 
 def run(args):
@@ -168,9 +168,10 @@ def run(args):
         work = Path(args.work) if args.work else Path(tmp)
         for name in args.objects:
             for size_label in args.sizes:
-                doc["runs"] += object_run(name, size_label, args, config, work)
-                # rewritten after every object so a long benchmark leaves partial results
-                path = write_json(args.out, "reconstruction", doc)
+                for entry in object_run(name, size_label, args, config, work):
+                    doc["runs"].append(entry)
+                    # rewritten after every variant so a long benchmark leaves partial results
+                    path = write_json(args.out, "reconstruction", doc)
     if args.timing:
         doc["timing"] = timing_run(args.timing, args.seed, config)
         path = write_json(args.out, "reconstruction", doc)

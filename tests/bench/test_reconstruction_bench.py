@@ -5,6 +5,7 @@ import json
 import math
 
 import numpy as np
+import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
@@ -100,3 +101,28 @@ def test_a_variant_that_cannot_be_meshed_is_recorded_and_the_rest_go_on(tmp_path
     assert [r["variant"] for r in runs] == list(reconstruction.VARIANTS)
     assert "too small to fuse" in runs[1]["skipped"] and "mesh" not in runs[1]
     assert "skipped" not in runs[0] and "skipped" not in runs[2] and "mesh" in runs[2]
+
+
+def test_variants_scored_before_a_crash_are_already_written(tmp_path, monkeypatch):
+    """The JSON is rewritten after every variant: when a later variant dies (here an
+    unexpected error in the third), the scored ones are on disk."""
+    real = reconstruction.reconstruct
+
+    def die_third(kfs, poses, config):
+        die_third.calls += 1
+        if die_third.calls == 3:
+            raise RuntimeError("meshing crashed")
+        return real(kfs, poses, config)
+
+    die_third.calls = 0
+    monkeypatch.setattr(reconstruction, "reconstruct", die_third)
+    p = argparse.ArgumentParser()
+    p.add_argument("--out", default=str(tmp_path / "reconstruction.json"))
+    reconstruction.add_arguments(p)
+    args = p.parse_args(["--objects", "dice", "--sizes", "small", "--frames", "160", "--samples", "2000",
+                         "--touches", "4", "--work", str(tmp_path / "work")])
+    with pytest.raises(RuntimeError, match="meshing crashed"):
+        reconstruction.run(args)
+    runs = json.loads((tmp_path / "reconstruction.json").read_text())["results"]["runs"]
+    assert [r["variant"] for r in runs] == list(reconstruction.VARIANTS)[:2]
+    assert all(math.isfinite(r["mesh"]["gt_pose"]["chamfer_mm"]) for r in runs)

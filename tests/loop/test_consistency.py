@@ -318,7 +318,7 @@ def three_sessions():
 
 
 def _gate(factors, **kw) -> LoopGate:
-    gate = LoopGate(MODEL, **kw)
+    gate = LoopGate(MODEL, **({"cycles": True} | kw))
     for i, j, Z in factors:
         gate.add_factor(i, j, Z)
     return gate
