@@ -41,7 +41,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--depth-mm", type=float, default=0.8, help="reference indentation")
     p.add_argument("--repeats", type=int, default=5, help="timed calls per pair")
-    p.add_argument("--fpfh-pairs", type=int, default=3, help="pairs per object for FPFH+RANSAC+ICP (slow)")
+    p.add_argument("--fpfh-pairs", type=int, default=3,
+                   help="pairs per object for FPFH+RANSAC+ICP (slow; 0 skips it)")
     p.add_argument("--wrong-deg", type=float, default=1.0)
     p.add_argument("--wrong-mm", type=float, default=0.1)
     p.add_argument("--seed", type=int, default=0)
@@ -125,6 +126,8 @@ def _timed_nf(refs: list[Frame], tars: list[Frame], configs: dict[str, NormalFlo
 
 
 def run(args) -> Path:
+    if args.fpfh_pairs < 0 or args.repeats < 1:
+        raise ValueError(f"--fpfh-pairs must be >= 0 and --repeats >= 1, got {args.fpfh_pairs}, {args.repeats}")
     if args.threads:
         torch.set_num_threads(args.threads)
     cfg = Config()
@@ -184,6 +187,8 @@ def run(args) -> Path:
         spread += [own[k] for k in np.unique(np.linspace(0, len(own) - 1, args.fpfh_pairs).round().astype(int))]
     for name, fn, pick in (("icp_point_to_plane", register_icp, range(n)), ("fpfh_ransac_icp", register_fpfh, spread)):
         pick = list(pick)
+        if not pick:  # --fpfh-pairs 0
+            continue
         results, samples = [], []
         for i in pick:
             t1 = time.perf_counter()
