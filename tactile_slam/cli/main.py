@@ -5,6 +5,7 @@ parser, which receives the parsed arguments and returns an exit code."""
 from __future__ import annotations
 
 import argparse
+import faulthandler
 import importlib
 import sys
 
@@ -29,6 +30,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # a crash inside a native library (Open3D, OpenCV) prints the Python stack that led
+    # there instead of a bare "Segmentation fault"
+    if not faulthandler.is_enabled():
+        faulthandler.enable()
     args = build_parser().parse_args(argv)
     try:
         rc = args.func(args)
