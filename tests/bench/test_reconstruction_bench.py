@@ -22,6 +22,15 @@ def keyframe(kf_id: int, video_index: int) -> Keyframe:
     return Keyframe(id=kf_id, session=kf_id, frame=frame, new_session=True, prev_T_kf=torch.eye(4, dtype=torch.float64))
 
 
+def tiny_args(tmp_path) -> argparse.Namespace:
+    """A 160-frame dice scan with few samples and touches."""
+    p = argparse.ArgumentParser()
+    p.add_argument("--out", default=str(tmp_path / "reconstruction.json"))
+    reconstruction.add_arguments(p)
+    return p.parse_args(["--objects", "dice", "--sizes", "small", "--frames", "160", "--samples", "2000",
+                         "--touches", "4", "--work", str(tmp_path / "work")])
+
+
 def random_poses(n: int, seed: int) -> np.ndarray:
     rng = np.random.default_rng(seed)
     out = np.tile(np.eye(4), (n, 1, 1))
@@ -92,11 +101,7 @@ def test_a_variant_that_cannot_be_meshed_is_recorded_and_the_rest_go_on(tmp_path
 
     refuse_estimated.calls = 0
     monkeypatch.setattr(reconstruction, "reconstruct", refuse_estimated)
-    p = argparse.ArgumentParser()
-    p.add_argument("--out", default=str(tmp_path / "reconstruction.json"))
-    reconstruction.add_arguments(p)
-    args = p.parse_args(["--objects", "dice", "--sizes", "small", "--frames", "160", "--samples", "2000",
-                         "--touches", "4", "--work", str(tmp_path / "work")])
+    args = tiny_args(tmp_path)
     runs = json.loads(reconstruction.run(args).read_text())["results"]["runs"]
     assert [r["variant"] for r in runs] == list(reconstruction.VARIANTS)
     assert "too small to fuse" in runs[1]["skipped"] and "mesh" not in runs[1]
@@ -116,11 +121,7 @@ def test_variants_scored_before_a_crash_are_already_written(tmp_path, monkeypatc
 
     die_third.calls = 0
     monkeypatch.setattr(reconstruction, "reconstruct", die_third)
-    p = argparse.ArgumentParser()
-    p.add_argument("--out", default=str(tmp_path / "reconstruction.json"))
-    reconstruction.add_arguments(p)
-    args = p.parse_args(["--objects", "dice", "--sizes", "small", "--frames", "160", "--samples", "2000",
-                         "--touches", "4", "--work", str(tmp_path / "work")])
+    args = tiny_args(tmp_path)
     with pytest.raises(RuntimeError, match="meshing crashed"):
         reconstruction.run(args)
     runs = json.loads((tmp_path / "reconstruction.json").read_text())["results"]["runs"]

@@ -172,22 +172,32 @@ def test_recent_loop_shortens_the_drift_path():
 # ------------------------------------------------------------------ across groups
 
 
-@pytest.fixture()
-def two_sessions():
-    """Session 0 (keyframes 0-14) and session 1 (15-29) on one arc, each in its own frame."""
-    true = arc(30)
-    graph, groups, gate = PoseGraph(), SessionGroups(), LoopGate(MODEL)
-    for k in range(30):
-        s = 0 if k < 15 else 1
-        if groups.add_keyframe(k, s):
+def chained_sessions(true: torch.Tensor, per: int) -> tuple[PoseGraph, SessionGroups, list]:
+    """The keyframes ``true`` ``(K, 4, 4)`` in sessions of ``per``, each session in its own
+    frame with exact odometry: ``(graph, groups, odometry factors (i, j, i_T_j))``."""
+    graph, groups, factors = PoseGraph(), SessionGroups(), []
+    for k in range(len(true)):
+        if groups.add_keyframe(k, k // per):
             graph.add_node(k)
             graph.add_prior(k)
-            gate.add_node(k)
         else:
             Z = se3.inverse(true[k - 1]) @ true[k]
             graph.add_node(k, graph.pose(k - 1) @ Z)
             graph.add_between(k - 1, k, Z)
-            gate.add_factor(k - 1, k, Z)
+            factors.append((k - 1, k, Z))
+    return graph, groups, factors
+
+
+@pytest.fixture()
+def two_sessions():
+    """Session 0 (keyframes 0-14) and session 1 (15-29) on one arc, each in its own frame."""
+    true = arc(30)
+    graph, groups, factors = chained_sessions(true, 15)
+    gate = LoopGate(MODEL)
+    for k in range(30):
+        gate.add_node(k)
+    for i, j, Z in factors:
+        gate.add_factor(i, j, Z)
     return true, graph, groups, gate
 
 
@@ -303,18 +313,7 @@ def test_closing_prediction_of_every_combination():
 def three_sessions():
     """Sessions 0 (keyframes 0-14), 1 (15-29) and 2 (30-44) on one arc, each in its own frame."""
     true = arc(45)
-    graph, groups = PoseGraph(), SessionGroups()
-    factors = []
-    for k in range(45):
-        if groups.add_keyframe(k, k // 15):
-            graph.add_node(k)
-            graph.add_prior(k)
-        else:
-            Z = se3.inverse(true[k - 1]) @ true[k]
-            graph.add_node(k, graph.pose(k - 1) @ Z)
-            graph.add_between(k - 1, k, Z)
-            factors.append((k - 1, k, Z))
-    return true, graph, groups, factors
+    return (true, *chained_sessions(true, 15))
 
 
 def _gate(factors, **kw) -> LoopGate:
