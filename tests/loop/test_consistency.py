@@ -384,6 +384,9 @@ def test_contradicted_cycle_does_not_merge(three_sessions):
 def test_backend_config_defaults_build_a_gate():
     be = BackEnd(Config(), loop_mode=None)
     assert be.gate is not None and be.gate.model.lever_mm == pytest.approx(0.5 * math.hypot(320, 240) * 0.0634)
+    assert be.gate.cycles is False  # off by default: a periodic texture closed a false cycle
+    cfg = replace(Config(), loop=replace(Config().loop, merge_cycles=True))
+    assert BackEnd(cfg, loop_mode=None).gate.cycles is True
 
 
 def test_backend_does_not_merge_sessions_on_one_repetitive_texture_loop():
