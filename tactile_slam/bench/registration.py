@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -173,6 +174,14 @@ def run(args) -> Path:
         batched[f"B={b}"] = st | {"median_ms_per_pair": st["median_ms"] / b,
                                   "max_rot_diff_vs_single_deg": float(rot_diff.max()),
                                   "max_trans_diff_vs_single_mm": float(trans_diff.max())}
+    if dev.type == "cpu":  # the same 64 pairs as one piece: what the cache-sized chunks gain here
+        whole = replace(NormalFlowConfig(), cpu_chunk_samples=0)
+        chunked_s, whole_s = [], []
+        for _ in range(args.repeats * 2):  # alternating, so a drift of the machine favours neither
+            chunked_s += time_fn(lambda: register(ref_b, tar_b), 1, warmup=0)
+            whole_s += time_fn(lambda: register(ref_b, tar_b, None, whole), 1, warmup=0)
+        batched["B=64, alternating: chunked (default)"] = timing_stats(chunked_s)
+        batched["B=64, alternating: whole batch (cpu_chunk_samples=0)"] = timing_stats(whole_s)
     # one reference, 64 targets (a keyframe against many frames): the object's own pairs
     own = [i for i in range(n) if obj_of[i] == args.objects[0]]
     tar_1 = Frame.cat([tars[own[i % len(own)]] for i in range(64)])
