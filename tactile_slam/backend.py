@@ -117,7 +117,7 @@ class BackEnd:
         self.stats = BackEndStats()
         self.sessions = SessionGroups()
         self.gate = (LoopGate(drift_model(config), config.loop.merge_min_pairs, config.loop.doubt_factor,
-                               config.loop.merge_distinct, config.loop.merge_cycles)
+                               config.loop.merge_distinct, config.loop.merge_cycles, config.loop.trust_repetitive)
                      if config.loop.consistency else None)
         self._last_in_session: dict[int, int] = {}
         self._group_view = _KeyframeView(self.keyframes, self.sessions.group_of)  # -> group id
@@ -161,10 +161,10 @@ class BackEnd:
         t0 = time.perf_counter()
         loops: list[Loop] = []
         if self.detector is not None:
+            self.detector.add(kf)  # first: detect reuses its features instead of extracting them again
             if detect:
                 eligible = [k for k in self.coverage.active if k in self.detector]
                 loops = self.detector.detect(kf, eligible, self._group_view, self._pose_view, self.keyframes)
-            self.detector.add(kf)
         t1 = time.perf_counter()
         self.stats.time_loop_detection.append(t1 - t0)
 

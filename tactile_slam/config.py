@@ -241,6 +241,9 @@ class LoopConfig:
     merge_min_pairs: int = 2
     merge_distinct: str = "queries"
     merge_cycles: bool = False
+    # loops on a texture that matches another part of itself (loop.matching.self_similarity)
+    # are accepted only within a group where the estimate predicts them, unless trusted
+    trust_repetitive: bool = False
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
     coverage_depth_gate_mm: float | None = None  # count overlap only within this depth

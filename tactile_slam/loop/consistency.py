@@ -195,6 +195,7 @@ class PendingLoop:
     loop: object
     groups: frozenset = frozenset()
     recheck: bool = False
+    repetitive: bool = False
 
 
 @dataclass
@@ -208,6 +209,8 @@ class GateStats:
     ``ambiguous``: evaluations where two disagreeing sets of loops both had enough support,
     or a closed cycle that another loop between its groups contradicts (no merge);
     ``cycles``: cycles of three groups closed by single loops (each merges three groups);
+    ``repetitive``: loops on a texture that matches itself elsewhere (``Loop.repetitive``)
+    that would have needed corroboration (between groups, or doubtful): dropped;
     ``pending``: loops waiting now.
     """
 
@@ -216,6 +219,7 @@ class GateStats:
     deferred: int = 0
     ambiguous: int = 0
     cycles: int = 0
+    repetitive: int = 0
     pending: int = 0
 
 
@@ -256,13 +260,18 @@ class LoopGate:
             short sessions after contact loss seldom give two loops to the same group, but a
             later session often touches two earlier ones, and a false loop rarely closes a
             cycle. The three groups merge.
+        trust_repetitive: let loops whose keyframes' texture matches another part of itself
+            (``Loop.repetitive``, e.g. a knurl's lattice) wait for and give corroboration like
+            any other. By default such a loop is accepted only within a group, where the
+            estimate predicts it; elsewhere it is dropped: two keyframes on one periodic
+            texture match the same wrong period alike, so their agreement proves nothing.
 
     The caller reports every factor it adds (:meth:`add_factor`) and calls :meth:`select`
     once per keyframe with its verified loops, after the keyframe's node and odometry are in.
     """
 
     def __init__(self, model: DriftModel, min_pairs: int = 2, doubt_factor: float = 5.0,
-                 distinct: str = "queries", cycles: bool = False) -> None:
+                 distinct: str = "queries", cycles: bool = False, trust_repetitive: bool = False) -> None:
         if min_pairs < 1 or doubt_factor < 1.0:
             raise ValueError(f"need min_pairs >= 1 and doubt_factor >= 1, got {min_pairs}, {doubt_factor}")
         if distinct not in DISTINCT:
@@ -272,6 +281,7 @@ class LoopGate:
         self.distinct = distinct
         self.doubt_factor = doubt_factor
         self.cycles = cycles
+        self.trust_repetitive = trust_repetitive
         self._limit = model.scaled(doubt_factor).half_turn_path_mm()  # drift paths searched up to this
         self.motion = MotionGraph(model.lever_mm)
         self.pending: list[PendingLoop] = []
@@ -299,9 +309,10 @@ class LoopGate:
         joined = [p for p in self.pending
                   if p.recheck or (len(p.groups) == 2 and group_of(p.a_id) == group_of(p.b_id))]
         self.pending = [p for p in self.pending if not any(p is q for q in joined)]
-        within = joined + [PendingLoop(lp.ref_id, t, lp.ref_T_tar, lp) for lp in loops if group_of(lp.ref_id) == g_t]
-        accepted = self._check_within(within, pose)
-        new = [PendingLoop(lp.ref_id, t, lp.ref_T_tar, lp) for lp in loops if group_of(lp.ref_id) != g_t]
+        mine = [PendingLoop(lp.ref_id, t, lp.ref_T_tar, lp, repetitive=lp.repetitive and not self.trust_repetitive)
+                for lp in loops]
+        accepted = self._check_within(joined + [p for p in mine if group_of(p.a_id) == g_t], pose)
+        new = self._drop_repetitive([p for p in mine if group_of(p.a_id) != g_t])
         self.pending += new
         self.stats.deferred += len(new)
         dirty: dict[frozenset, list[PendingLoop]] = {}
@@ -338,6 +349,13 @@ class LoopGate:
         self.stats.pending = len(self.pending)
         return Selection(accepted, merges)
 
+    def _drop_repetitive(self, loops: list[PendingLoop]) -> list[PendingLoop]:
+        """The loops that may wait for corroboration: those on a repeating texture are
+        dropped (counted in ``stats.repetitive``)."""
+        keep = [p for p in loops if not p.repetitive]
+        self.stats.repetitive += len(loops) - len(keep)
+        return keep
+
     def _take(self, chosen: list[PendingLoop], members: list[PendingLoop]) -> None:
         """Remove accepted loops from the pending ones; the other ``members`` (loops between
         the same groups) meet the corrected estimate at the next keyframe."""
@@ -360,7 +378,7 @@ class LoopGate:
         # beyond the search limit the doubt band exceeds a half turn: nothing can be rejected
         plausible = (consistent(pred, meas, paths, self.model.scaled(self.doubt_factor))
                      | ~torch.isfinite(paths)).tolist()
-        doubtful = [p for p, k, m in zip(loops, ok, plausible) if m and not k]
+        doubtful = self._drop_repetitive([p for p, k, m in zip(loops, ok, plausible) if m and not k])
         for p in doubtful:
             p.groups, p.recheck = frozenset(), False  # evaluated with its group below
         self.pending += doubtful

@@ -37,7 +37,7 @@ import torch
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import Frame
 from tactile_slam.loop.features import Features, SiftSettings, curvature_features, image_features
-from tactile_slam.loop.matching import RansacSettings, match, similarity_to_se3
+from tactile_slam.loop.matching import RansacSettings, match, self_similarity, similarity_to_se3
 from tactile_slam.loop.retrieval import DescriptorIndex, Footprint, IndexSettings, footprints, pose_gate
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import prepare_reference, register_prepared
@@ -66,6 +66,9 @@ class Loop:
         inliers: 2-D RANSAC inliers (0 in ``only_nf``).
         init_tar_T_ref: ``(4, 4)`` float64 initial guess NormalFlow started from
             (the lifted 2-D similarity; identity in ``only_nf``).
+        repetitive: either keyframe's texture matches another part of itself
+            (:func:`~tactile_slam.loop.matching.self_similarity`): the match may be a whole
+            period or a symmetry away, so the loop is no independent evidence.
     """
 
     ref_id: int
@@ -75,12 +78,13 @@ class Loop:
     scr: float
     inliers: int
     init_tar_T_ref: torch.Tensor
+    repetitive: bool = False
 
     def to_dict(self) -> dict:
         """JSON-ready: poses as nested lists (metres)."""
         return {"ref_id": self.ref_id, "tar_id": self.tar_id, "ref_T_tar": self.ref_T_tar.tolist(),
                 "ccs": self.ccs, "scr": self.scr, "inliers": self.inliers,
-                "init_tar_T_ref": self.init_tar_T_ref.tolist()}
+                "init_tar_T_ref": self.init_tar_T_ref.tolist(), "repetitive": self.repetitive}
 
 
 @dataclass
@@ -145,6 +149,7 @@ class LoopDetector:
         self._features: dict[int, Features] = {}
         self._matchable: set[int] = set()  # ids with at least min_sift_inliers keypoints
         self._footprints: dict[int, Footprint | None] = {}
+        self._repetitive: set[int] = set()  # ids whose texture matches another part of itself
         self._removed: set[int] = set()
         self.stats = DetectionStats()
 
@@ -187,6 +192,8 @@ class LoopDetector:
         self._features[keyframe.id] = feats
         if len(feats) >= self.ransac.min_inliers:
             self._matchable.add(keyframe.id)
+        if self_similarity(feats, self.ransac) is not None:
+            self._repetitive.add(keyframe.id)
         self.index.add(keyframe.id, feats.descriptors)
         self._footprints[keyframe.id] = footprints(keyframe.frame.height, keyframe.frame.contact,
                                                    keyframe.frame.mm_per_px / 1000.0)[0]
@@ -199,8 +206,16 @@ class LoopDetector:
         del self._features[kf_id]
         self._matchable.discard(kf_id)
         del self._footprints[kf_id]
+        self._repetitive.discard(kf_id)
         self.index.remove(kf_id)
         self._removed.add(kf_id)
+
+    def is_repetitive(self, keyframe: Keyframe) -> bool:
+        """Whether the keyframe's texture matches another part of itself
+        (:func:`~tactile_slam.loop.matching.self_similarity`); stored for added keyframes."""
+        if keyframe.id in self._features:
+            return keyframe.id in self._repetitive
+        return self_similarity(self.extract(keyframe), self.ransac) is not None
 
     # ------------------------------------------------------------------ detection
     def detect(self, query: Keyframe, eligible: Collection[int], group_of: Mapping[int, int],
@@ -257,8 +272,9 @@ class LoopDetector:
         init = torch.stack(inits)
         if self.mode == "only_sift":
             ref_T_tar = se3.inverse(init)
-            loops = [Loop(r, query.id, ref_T_tar[i], math.nan, math.nan, inliers[i], init[i])
-                     for i, r in enumerate(found)]
+            rep = self.is_repetitive(query)
+            loops = [Loop(r, query.id, ref_T_tar[i], math.nan, math.nan, inliers[i], init[i],
+                          rep or r in self._repetitive) for i, r in enumerate(found)]
             self.stats.loops += len(loops)
             return loops
         return self._verify_and_accept(query, found, init, inliers, keyframes)
@@ -347,7 +363,9 @@ class LoopDetector:
             self.stats.rejected_deviation += int((ok & far).sum())
             ok &= ~far
         ref_T_tar = se3.inverse(T)
-        loops = [Loop(r, query.id, ref_T_tar[i], float(res.ccs[i]), float(res.scr[i]), inliers[i], init[i].clone())
+        rep = self.is_repetitive(query) if bool(ok.any()) else False
+        loops = [Loop(r, query.id, ref_T_tar[i], float(res.ccs[i]), float(res.scr[i]), inliers[i], init[i].clone(),
+                      rep or r in self._repetitive)
                  for i, r in enumerate(cands) if bool(ok[i])]
         self.stats.loops += len(loops)
         return loops

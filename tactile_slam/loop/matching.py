@@ -19,7 +19,7 @@ the translation by half a pixel times the rotation.)
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -161,6 +161,35 @@ def match(ref: Features, tar: Features, settings: RansacSettings | None = None) 
     if len(pairs) < s.min_inliers:
         return None
     return estimate_similarity(ref.keypoints.numpy()[pairs[:, 0]], tar.keypoints.numpy()[pairs[:, 1]], s)
+
+
+def self_similarity(feats: Features, settings: RansacSettings | None = None) -> Similarity | None:
+    """A 2-D similarity that maps a keyframe's texture onto *another part of itself*, or None.
+
+    Each keypoint is paired with its nearest descriptor among the keypoints farther than
+    three RANSAC thresholds from it (cross-checked), and the similarity is fitted to those
+    pairs with the loop's own RANSAC settings (no ambiguity test). A periodic texture
+    (a knurl's lattice, a grating) matches itself shifted by whole periods and yields one;
+    an aperiodic one does not. Such a keyframe matches the same texture elsewhere on the
+    object as well as the right place, so its loops are no independent evidence.
+
+    Returns:
+        the :class:`Similarity` between keypoint positions, or ``None``.
+    """
+    s = replace(settings or RansacSettings(), ambiguity_ratio=None)
+    if len(feats) < s.min_inliers:
+        return None
+    d = feats.descriptors.double()
+    xy = feats.keypoints.double()
+    dist = (d * d).sum(1)[:, None] + (d * d).sum(1)[None] - 2.0 * d @ d.T
+    dist[torch.cdist(xy, xy) <= 3.0 * s.threshold_px] = torch.inf  # itself and its neighbourhood
+    nn = dist.argmin(1)
+    idx = torch.arange(len(feats))
+    mutual = idx[(nn[nn] == idx) & torch.isfinite(dist.min(1).values)]
+    if len(mutual) < s.min_inliers:
+        return None
+    pts = feats.keypoints.numpy()
+    return estimate_similarity(pts[mutual.numpy()], pts[nn[mutual].numpy()], s)
 
 
 def similarity_to_se3(M: np.ndarray | torch.Tensor, shape: tuple[int, int], m_per_px: float) -> torch.Tensor:

@@ -389,17 +389,22 @@ def test_backend_config_defaults_build_a_gate():
     assert BackEnd(cfg, loop_mode=None).gate.cycles is True
 
 
-def test_backend_does_not_merge_sessions_on_one_repetitive_texture_loop():
+@pytest.mark.parametrize("trust", [False, True])
+def test_backend_does_not_merge_sessions_on_one_repetitive_texture_loop(trust):
     """The detector's periodic-texture trap (two identical touches 12 periods apart) in two
-    sessions: the pair verifies across groups, and the back end holds it instead of merging."""
+    sessions: the pair verifies across groups and is flagged repetitive (the texture matches
+    itself shifted); the back end drops it, or with ``trust_repetitive`` holds it, and never
+    merges."""
     surf = Surface(depth=0.6e-3, waves=[(25e-6, 1.0e-3, 0.0, 0.3), (25e-6, 1.0e-3, math.pi / 2, 1.1)])
     fr = frames(surf, [torch.eye(4, dtype=torch.float64)])
-    be = BackEnd(Config())
+    be = BackEnd(replace(Config(), loop=replace(Config().loop, trust_repetitive=trust)))
     for k in range(2):
         be.add(Keyframe(k, k, fr[0], True, torch.eye(4, dtype=torch.float64)))
     assert be.detector.stats.loops == 1  # verified: a local test cannot reject it
+    assert be.detector.is_repetitive(be.keyframes[0]) and be.detector.is_repetitive(be.keyframes[1])
     assert be.loops == [] and be.stats.merges == 0 and be.group[0] != be.group[1]
-    assert len(be.gate.pending) == 1 and be.summary()["loop_gate"]["pending"] == 1
+    gate = be.summary()["loop_gate"]
+    assert len(be.gate.pending) == gate["pending"] == int(trust) and gate["repetitive"] == int(not trust)
 
 
 def test_bad_gate_settings_are_refused():

@@ -9,12 +9,12 @@ import numpy as np
 import pytest
 import torch
 
-from tactile_slam.loop.features import curvature_features
+from tactile_slam.loop.features import Features, curvature_features
 from tactile_slam.loop.matching import (
-    MatchingError, RansacSettings, estimate_similarity, match, match_descriptors, similarity_to_se3,
+    MatchingError, RansacSettings, estimate_similarity, match, match_descriptors, self_similarity, similarity_to_se3,
 )
 from tactile_slam.registration.result import pose_error
-from tests.registration.surfaces import frames, rigid, textured
+from tests.registration.surfaces import Surface, frames, rigid, textured
 
 S = 0.0634e-3
 SHAPE = (240, 320)
@@ -120,6 +120,39 @@ def test_ambiguous_alignment_is_rejected():
     unique[:5] = g.random((5, 2)) * 200
     sim = estimate_similarity(ref, unique)
     assert sim is not None and sim.inliers >= 19 and sim.second < 4
+
+
+def test_self_similarity_of_a_pattern_that_appears_twice():
+    """Twelve keypoints and the same pattern again 65 px away (descriptors equal up to
+    noise): the texture maps onto itself by that shift; the same points with unrelated
+    descriptors do not, nor do fewer keypoints than RANSAC's minimum."""
+    g = torch.Generator().manual_seed(0)
+    pts = torch.rand(12, 2, generator=g) * 50 + 40
+    desc = torch.rand(12, 128, generator=g)
+    xy = torch.cat([pts, pts + torch.tensor([60.0, 25.0])])
+    twice = torch.cat([desc, desc + 1e-3 * torch.rand(12, 128, generator=g)])
+    sim = self_similarity(Features(xy, twice))
+    assert sim is not None and sim.inliers >= 8
+    assert np.allclose(sim.M[:, :2], np.eye(2), atol=1e-3)
+    assert np.allclose(np.abs(sim.M[:, 2]), [60.0, 25.0], atol=0.1)
+    assert self_similarity(Features(xy, torch.rand(24, 128, generator=g))) is None
+    assert self_similarity(Features(xy[:5], twice[:5])) is None  # fewer than min_inliers
+
+
+def test_self_similarity_on_rendered_textures():
+    """A square-lattice texture (1 mm waves along x and y) maps onto itself by a symmetry of
+    the lattice (a quarter turn or a whole-period shift, unit scale); random waves and
+    bumps (seeds 0 and 3) do not."""
+    lattice = Surface(depth=0.6e-3, waves=[(25e-6, 1.0e-3, 0.0, 0.3), (25e-6, 1.0e-3, math.pi / 2, 1.1)])
+    eye = torch.eye(4, dtype=torch.float64)
+    for surf, repeats in ((lattice, True), (textured(0), False), (textured(3), False)):
+        fr = frames(surf, [eye])
+        sim = self_similarity(curvature_features(fr.curvature[0], fr.contact[0], 0.7))
+        assert (sim is not None) == repeats
+        if repeats:
+            angle = math.degrees(math.atan2(sim.M[1, 0], sim.M[0, 0]))
+            assert min(abs(angle - a) for a in (-180, -90, 0, 90, 180)) < 1.0
+            assert abs(math.hypot(sim.M[0, 0], sim.M[1, 0]) - 1.0) < 0.01
 
 
 def test_exceptions():
