@@ -161,10 +161,10 @@ class BackEnd:
         t0 = time.perf_counter()
         loops: list[Loop] = []
         if self.detector is not None:
-            self.detector.add(kf)  # first: detect reuses its features instead of extracting them again
             if detect:
                 eligible = [k for k in self.coverage.active if k in self.detector]
                 loops = self.detector.detect(kf, eligible, self._group_view, self._pose_view, self.keyframes)
+            self.detector.add(kf)
         t1 = time.perf_counter()
         self.stats.time_loop_detection.append(t1 - t0)
 

@@ -230,8 +230,7 @@ class LoopConfig:
     # keyframes on both sides ("both": rarely met, the coverage set often leaves one
     # candidate keyframe per region, so sessions did not merge after contact loss);
     # merge_cycles: three single loops between three groups that compose to the identity
-    # within the drift tolerance also merge them (short sessions after contact loss); off:
-    # on a periodic texture it let one false merge through (docs/loops.md)
+    # within the drift tolerance also merge them (short sessions after contact loss)
     consistency: bool = True
     drift_base_rot_deg: float = 3.0
     drift_base_trans_mm: float = 0.5
@@ -240,7 +239,7 @@ class LoopConfig:
     doubt_factor: float = 5.0
     merge_min_pairs: int = 2
     merge_distinct: str = "queries"
-    merge_cycles: bool = False
+    merge_cycles: bool = True
     # loops on a texture that matches another part of itself (loop.matching.self_similarity)
     # are accepted only within a group where the estimate predicts them, unless trusted
     trust_repetitive: bool = False

@@ -271,7 +271,7 @@ class LoopGate:
     """
 
     def __init__(self, model: DriftModel, min_pairs: int = 2, doubt_factor: float = 5.0,
-                 distinct: str = "queries", cycles: bool = False, trust_repetitive: bool = False) -> None:
+                 distinct: str = "queries", cycles: bool = True, trust_repetitive: bool = False) -> None:
         if min_pairs < 1 or doubt_factor < 1.0:
             raise ValueError(f"need min_pairs >= 1 and doubt_factor >= 1, got {min_pairs}, {doubt_factor}")
         if distinct not in DISTINCT:

@@ -150,6 +150,7 @@ class LoopDetector:
         self._matchable: set[int] = set()  # ids with at least min_sift_inliers keypoints
         self._footprints: dict[int, Footprint | None] = {}
         self._repetitive: set[int] = set()  # ids whose texture matches another part of itself
+        self._query: tuple[Keyframe, Features] | None = None  # the last query's features, reused by add
         self._removed: set[int] = set()
         self.stats = DetectionStats()
 
@@ -188,7 +189,8 @@ class LoopDetector:
         """
         if keyframe.id in self._features or keyframe.id in self._removed:
             raise LoopError(f"keyframe {keyframe.id} was already added")
-        feats = self.extract(keyframe)
+        feats = self._query_features(keyframe)
+        self._query = None
         self._features[keyframe.id] = feats
         if len(feats) >= self.ransac.min_inliers:
             self._matchable.add(keyframe.id)
@@ -215,7 +217,14 @@ class LoopDetector:
         (:func:`~tactile_slam.loop.matching.self_similarity`); stored for added keyframes."""
         if keyframe.id in self._features:
             return keyframe.id in self._repetitive
-        return self_similarity(self.extract(keyframe), self.ransac) is not None
+        return self_similarity(self._query_features(keyframe), self.ransac) is not None
+
+    def _query_features(self, keyframe: Keyframe) -> Features:
+        """Features of a keyframe not added yet; kept for the :meth:`add` that usually
+        follows its detection, so they are extracted once."""
+        if self._query is None or self._query[0] is not keyframe:
+            self._query = (keyframe, self.extract(keyframe))
+        return self._query[1]
 
     # ------------------------------------------------------------------ detection
     def detect(self, query: Keyframe, eligible: Collection[int], group_of: Mapping[int, int],
@@ -247,7 +256,7 @@ class LoopDetector:
             return self._verify_and_accept(query, cands, init, [0] * len(cands), keyframes)
         q_feats = self._features.get(query.id)
         if q_feats is None:
-            q_feats = self.extract(query)
+            q_feats = self._query_features(query)
         if len(q_feats) < self.ransac.min_inliers:
             return []
         t0 = time.perf_counter()

@@ -317,7 +317,7 @@ def three_sessions():
 
 
 def _gate(factors, **kw) -> LoopGate:
-    gate = LoopGate(MODEL, **({"cycles": True} | kw))
+    gate = LoopGate(MODEL, **kw)
     for i, j, Z in factors:
         gate.add_factor(i, j, Z)
     return gate
@@ -384,9 +384,10 @@ def test_contradicted_cycle_does_not_merge(three_sessions):
 def test_backend_config_defaults_build_a_gate():
     be = BackEnd(Config(), loop_mode=None)
     assert be.gate is not None and be.gate.model.lever_mm == pytest.approx(0.5 * math.hypot(320, 240) * 0.0634)
-    assert be.gate.cycles is False  # off by default: a periodic texture closed a false cycle
-    cfg = replace(Config(), loop=replace(Config().loop, merge_cycles=True))
-    assert BackEnd(cfg, loop_mode=None).gate.cycles is True
+    assert be.gate.cycles is True and be.gate.trust_repetitive is False
+    cfg = replace(Config(), loop=replace(Config().loop, merge_cycles=False, trust_repetitive=True))
+    gate = BackEnd(cfg, loop_mode=None).gate
+    assert gate.cycles is False and gate.trust_repetitive is True
 
 
 @pytest.mark.parametrize("trust", [False, True])

@@ -195,3 +195,25 @@ def test_repetitive_texture_no_false_loop():
     assert det.stats.gated == 1
     ambiguous = det.detect(kfs[5], [0], {0: 0, 5: 1}, start_T, kfs)  # other group: no gate
     assert len(ambiguous) == 1
+
+
+def test_a_query_is_extracted_once_between_detect_and_add(scene, monkeypatch):
+    """The back end detects with a new keyframe, then adds it: its SIFT features are
+    computed once and reused (the same values), and a different keyframe is not confused
+    with it."""
+    det = _detector(scene, ids=(0, 1, 3))
+    calls = []
+    real = det.extract
+    monkeypatch.setattr(det, "extract", lambda kf: calls.append(kf.id) or real(kf))
+    loops = det.detect(scene[2], [0, 1, 3], {}, {}, scene)
+    assert loops and calls == [2]
+    assert [lp.repetitive for lp in loops] == [det.is_repetitive(scene[2]) or det.is_repetitive(scene[lp.ref_id])
+                                              for lp in loops]
+    feats = det.add(scene[2])
+    assert calls == [2]
+    fresh = real(scene[2])
+    assert torch.equal(feats.keypoints, fresh.keypoints) and torch.equal(feats.descriptors, fresh.descriptors)
+    other = _kf(7, scene[0].frame)
+    det.detect(other, [0], {}, {}, {**scene, 7: other})
+    det.add(_kf(8, scene[1].frame))  # not the last query: extracted afresh
+    assert calls == [2, 7, 8]
