@@ -209,8 +209,8 @@ class GateStats:
     ``ambiguous``: evaluations where two disagreeing sets of loops both had enough support,
     or a closed cycle that another loop between its groups contradicts (no merge);
     ``cycles``: cycles of three groups closed by single loops (each merges three groups);
-    ``repetitive``: loops on a texture that matches itself elsewhere (``Loop.repetitive``)
-    that would have needed corroboration (between groups, or doubtful): dropped;
+    ``repetitive``: loops between groups on a texture that matches itself elsewhere
+    (``Loop.repetitive``): dropped;
     ``pending``: loops waiting now.
     """
 
@@ -261,10 +261,11 @@ class LoopGate:
             later session often touches two earlier ones, and a false loop rarely closes a
             cycle. The three groups merge.
         trust_repetitive: let loops whose keyframes' texture matches another part of itself
-            (``Loop.repetitive``, e.g. a knurl's lattice) wait for and give corroboration like
-            any other. By default such a loop is accepted only within a group, where the
-            estimate predicts it; elsewhere it is dropped: two keyframes on one periodic
-            texture match the same wrong period alike, so their agreement proves nothing.
+            (``Loop.repetitive``, e.g. a knurl's lattice) join two groups like any other. By
+            default such a loop is used only within a group, where the estimate predicts it
+            (within the tolerance, or corroborated within the doubt band); between groups it
+            is dropped: two keyframes on one periodic texture match the same wrong period
+            alike, and nothing else can tell.
 
     The caller reports every factor it adds (:meth:`add_factor`) and calls :meth:`select`
     once per keyframe with its verified loops, after the keyframe's node and odometry are in.
@@ -350,8 +351,8 @@ class LoopGate:
         return Selection(accepted, merges)
 
     def _drop_repetitive(self, loops: list[PendingLoop]) -> list[PendingLoop]:
-        """The loops that may wait for corroboration: those on a repeating texture are
-        dropped (counted in ``stats.repetitive``)."""
+        """The loops between groups that may wait for corroboration: those on a repeating
+        texture are dropped (counted in ``stats.repetitive``)."""
         keep = [p for p in loops if not p.repetitive]
         self.stats.repetitive += len(loops) - len(keep)
         return keep
@@ -378,7 +379,7 @@ class LoopGate:
         # beyond the search limit the doubt band exceeds a half turn: nothing can be rejected
         plausible = (consistent(pred, meas, paths, self.model.scaled(self.doubt_factor))
                      | ~torch.isfinite(paths)).tolist()
-        doubtful = self._drop_repetitive([p for p, k, m in zip(loops, ok, plausible) if m and not k])
+        doubtful = [p for p, k, m in zip(loops, ok, plausible) if m and not k]
         for p in doubtful:
             p.groups, p.recheck = frozenset(), False  # evaluated with its group below
         self.pending += doubtful
