@@ -183,12 +183,6 @@ class PendingLoop:
     ``groups`` the group(s) of its ends when last evaluated; ``recheck``: other loops were
     accepted for the same groups, so it is checked against the estimate at the next step."""
 
-    def oriented(self, group_of, g: int) -> tuple[int, int, torch.Tensor]:
-        """``(x, y, x_T_y)``: this loop with ``x`` in group ``g``."""
-        if group_of(self.a_id) == g:
-            return self.a_id, self.b_id, self.a_T_b
-        return self.b_id, self.a_id, se3.inverse(self.a_T_b)
-
     a_id: int
     b_id: int
     a_T_b: torch.Tensor
@@ -196,6 +190,12 @@ class PendingLoop:
     groups: frozenset = frozenset()
     recheck: bool = False
     repetitive: bool = False
+
+    def oriented(self, group_of, g: int) -> tuple[int, int, torch.Tensor]:
+        """``(x, y, x_T_y)``: this loop with ``x`` in group ``g``."""
+        if group_of(self.a_id) == g:
+            return self.a_id, self.b_id, self.a_T_b
+        return self.b_id, self.a_id, se3.inverse(self.a_T_b)
 
 
 @dataclass
@@ -401,8 +401,7 @@ class LoopGate:
             return None
         g_a = group_of(members[0].a_id)
         # oriented as (a in group g_a, b in the other group, a_T_b)
-        ends = [(p.a_id, p.b_id, p.a_T_b) if group_of(p.a_id) == g_a else (p.b_id, p.a_id, se3.inverse(p.a_T_b))
-                for p in members]
+        ends = [p.oriented(group_of, g_a) for p in members]
         a_ids = sorted({a for a, _, _ in ends})
         b_ids = sorted({b for _, b, _ in ends})
         from_a = {a: self.motion.paths(a, a_ids, self._limit) for a in a_ids}

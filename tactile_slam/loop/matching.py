@@ -177,15 +177,20 @@ def self_similarity(feats: Features, settings: RansacSettings | None = None) -> 
         the :class:`Similarity` between keypoint positions, or ``None``.
     """
     s = replace(settings or RansacSettings(), ambiguity_ratio=None)
+    xy, d = feats.keypoints, feats.descriptors
+    if xy.ndim != 2 or xy.shape[1] != 2 or d.ndim != 2 or len(d) != len(xy):
+        raise MatchingError(f"features must be (N, 2) keypoints and (N, D) descriptors, got "
+                            f"{tuple(xy.shape)} and {tuple(d.shape)}")
+    if not (torch.isfinite(xy).all() and torch.isfinite(d).all()):
+        raise MatchingError("keypoints or descriptors contain NaN or Inf")
     if len(feats) < s.min_inliers:
         return None
-    d = feats.descriptors.double()
-    xy = feats.keypoints.double()
-    dist = (d * d).sum(1)[:, None] + (d * d).sum(1)[None] - 2.0 * d @ d.T
+    xy = xy.double()
+    dist = torch.cdist(d.double(), d.double())
     dist[torch.cdist(xy, xy) <= 3.0 * s.threshold_px] = torch.inf  # itself and its neighbourhood
-    nn = dist.argmin(1)
+    nearest, nn = dist.min(1)
     idx = torch.arange(len(feats))
-    mutual = idx[(nn[nn] == idx) & torch.isfinite(dist.min(1).values)]
+    mutual = idx[(nn[nn] == idx) & torch.isfinite(nearest)]
     if len(mutual) < s.min_inliers:
         return None
     pts = feats.keypoints.numpy()

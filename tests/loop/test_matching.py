@@ -155,6 +155,19 @@ def test_self_similarity_on_rendered_textures():
             assert abs(math.hypot(sim.M[0, 0], sim.M[1, 0]) - 1.0) < 0.01
 
 
+def test_self_similarity_refuses_bad_features():
+    xy, desc = torch.rand(12, 2) * 100, torch.rand(12, 128)
+    with pytest.raises(MatchingError, match="NaN"):
+        self_similarity(Features(xy, torch.cat([desc[:11], torch.full((1, 128), math.nan)])))
+    with pytest.raises(MatchingError, match="NaN"):
+        self_similarity(Features(torch.cat([xy[:11], torch.tensor([[math.inf, 0.0]])]), desc))
+    with pytest.raises(MatchingError, match="keypoints"):
+        self_similarity(Features(xy[:10], desc))
+    with pytest.raises(MatchingError, match="keypoints"):
+        self_similarity(Features(xy[:, :1], desc))
+    assert self_similarity(Features(torch.zeros(0, 2), torch.zeros(0, 128))) is None  # no keypoints
+
+
 def test_exceptions():
     with pytest.raises(MatchingError):
         match_descriptors(np.zeros((3, 128)), np.zeros((3, 64)))
