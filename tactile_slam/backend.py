@@ -9,7 +9,8 @@ the group's root session) up to date. Per keyframe (offline step order of method
 1. insert the node with its chained initial value, and its prior (session head) or
    odometry factor;
 2. detect loops against the *active coverage* keyframes, as the coverage set was before
-   this keyframe;
+   this keyframe; for loops between two groups that still lack a second query keyframe,
+   probe a predicted pair (``loop.probes``, :mod:`tactile_slam.loop.probe`);
 3. decide which verified loops enter the graph (:class:`~tactile_slam.loop.consistency.LoopGate`,
    ``loop.consistency``): a loop within the keyframe's group that agrees with the current
    estimate within the drift tolerance is accepted, one far beyond it rejected; the others,
@@ -42,9 +43,12 @@ import numpy as np
 import torch
 
 from tactile_slam.config import Config
-from tactile_slam.loop.consistency import DriftModel, LoopGate
+from tactile_slam.loop.consistency import DriftModel, LoopGate, consistent
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import Loop, LoopDetector
+from tactile_slam.loop.probe import best_pair, starts
+from tactile_slam.loop.retrieval import Footprint, footprints
+from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.incremental import IncrementalSolver
 from tactile_slam.posegraph.sessions import SessionGroups
@@ -61,6 +65,9 @@ class BackEndStats:
     merges: int = 0
     refined: int = 0  # loops re-measured (refinements that failed their checks keep the first value)
     refine_failed: int = 0
+    probes: int = 0  # predicted pairs verified for loops waiting between groups
+    probe_loops: int = 0  # of them, verified (they still pass the loop gate like any loop)
+    probes_ambiguous: int = 0  # verified, but an alternative start verified elsewhere too
     time_refine: list[float] = field(default_factory=list)
     time_loop_detection: list[float] = field(default_factory=list)
     time_pose_graph: list[float] = field(default_factory=list)
@@ -107,6 +114,8 @@ class BackEnd:
         n = config.posegraph.refine_n_samples
         if n is not None and n < 1:
             raise ValueError(f"posegraph.refine_n_samples must be >= 1 or None, got {n}")
+        if config.loop.probes < 0:
+            raise ValueError(f"loop.probes must be >= 0, got {config.loop.probes}")
         self.config = config
         self.graph = PoseGraph(config.posegraph)
         self.solver = IncrementalSolver(self.graph, config.posegraph)
@@ -120,6 +129,8 @@ class BackEnd:
                                config.loop.merge_distinct, config.loop.merge_cycles, config.loop.trust_repetitive)
                      if config.loop.consistency else None)
         self._last_in_session: dict[int, int] = {}
+        self._footprints: dict[int, Footprint | None] = {}
+        self._probed: set[tuple[int, int]] = set()
         self._group_view = _KeyframeView(self.keyframes, self.sessions.group_of)  # -> group id
         self._pose_view = _KeyframeView(self.keyframes, self.graph.pose)  # -> (4, 4) start_T_kf
 
@@ -145,6 +156,7 @@ class BackEnd:
         stays a candidate for later keyframes."""
         self.keyframes[kf.id] = kf
         self.stats.keyframes += 1
+        self._footprints[kf.id] = footprints(kf.frame.height, kf.frame.contact, kf.frame.mm_per_px / 1000.0)[0]
         prev = self._last_in_session.get(kf.session)
         if self.sessions.add_keyframe(kf.id, kf.session):
             self.graph.add_node(kf.id)
@@ -165,11 +177,12 @@ class BackEnd:
                 eligible = [k for k in self.coverage.active if k in self.detector]
                 loops = self.detector.detect(kf, eligible, self._group_view, self._pose_view, self.keyframes)
             self.detector.add(kf)
+            loops = loops + self._probe(loops)
         t1 = time.perf_counter()
         self.stats.time_loop_detection.append(t1 - t0)
 
         if self.gate is not None:
-            sel = self.gate.select(kf.id, loops, self.sessions.group_of, self.graph.pose)
+            sel = self.gate.select(loops, self.sessions.group_of, self.graph.pose)
             loops, joins = sel.accepted, sel.merges
         else:
             joins = [(kf.id, lp.ref_id, lp.ref_T_tar) for lp in loops]
@@ -211,6 +224,82 @@ class BackEnd:
         self.stats.time_coverage.append(time.perf_counter() - t2)
         return loops
 
+    def _probe(self, loops: list[Loop]) -> list[Loop]:
+        """Verified probes (``Loop.probe``) for the group pairs whose waiting loops (the
+        gate's, and ``loops`` of the new keyframe) come from fewer than
+        ``loop.merge_min_pairs`` query keyframes; at most ``loop.probes``, the pairs with the
+        newest loops first (:mod:`tactile_slam.loop.probe`)."""
+        budget = self.config.loop.probes
+        if budget == 0 or self.gate is None or self.detector.mode in ("only_sift", "only_nf"):
+            return []
+        group_of, trust = self.sessions.group_of, self.config.loop.trust_repetitive
+        waiting: dict[frozenset, list[tuple[int, int, torch.Tensor]]] = {}
+        for a, b, a_T_b, rep in ([(p.a_id, p.b_id, p.a_T_b, p.repetitive) for p in self.gate.pending]
+                                 + [(lp.ref_id, lp.tar_id, lp.ref_T_tar, lp.repetitive and not trust) for lp in loops]):
+            key = frozenset((group_of(a), group_of(b)))
+            if len(key) == 2 and not rep:
+                waiting.setdefault(key, []).append((a, b, a_T_b))
+        keys = sorted((k for k, v in waiting.items() if len({b for _, b, _ in v}) < self.config.loop.merge_min_pairs),
+                      key=lambda k: -max(b for _, b, _ in waiting[k]))
+        probes = []
+        for key in keys[:budget]:
+            a, b, a_T_b = max(waiting[key], key=lambda e: e[1])
+            ends = {e for x, y, _ in waiting[key] for e in (x, y)}
+            xs = [k for k in self.sessions.members(group_of(a)) if self._probe_ok(k, trust)]
+            ys = [k for k in self.sessions.members(group_of(b)) if k not in ends and self._probe_ok(k, trust)]
+            if not xs or not ys:
+                continue
+            H_T_G = self.graph.pose(a) @ a_T_b.double() @ se3.inverse(self.graph.pose(b))
+            fx, fy = [self._footprints[k] for k in xs], [self._footprints[k] for k in ys]
+            allowed = torch.ones(len(xs), len(ys), dtype=torch.bool)
+            row, col = {k: i for i, k in enumerate(xs)}, {k: j for j, k in enumerate(ys)}
+            for x, y in self._probed:
+                if x in row and y in col:
+                    allowed[row[x], col[y]] = False
+            pair = best_pair(H_T_G, self.graph.poses(xs), torch.stack([f.centre for f in fx]),
+                             torch.tensor([f.radius for f in fx], dtype=torch.float64), self.graph.poses(ys),
+                             torch.stack([f.centre for f in fy]),
+                             torch.tensor([f.radius for f in fy], dtype=torch.float64), allowed)
+            if pair is None:
+                continue
+            x, y = xs[pair[0]], ys[pair[1]]
+            self._probed.add((x, y))
+            self.stats.probes += 1
+            loop = self._probe_pair(x, y, H_T_G)
+            if loop is not None:
+                probes.append(loop)
+        self.stats.probe_loops += len(probes)
+        return probes
+
+    def _probe_pair(self, x: int, y: int, H_T_G: torch.Tensor) -> Loop | None:
+        """NormalFlow on ``(x, y)`` from the pose ``H_T_G`` predicts and from the alternatives
+        of :func:`~tactile_slam.loop.probe.starts`: a loop when the prediction verifies
+        and no alternative verifies somewhere else (beyond the gate's base tolerance)."""
+        x_T_y = se3.inverse(self.graph.pose(x)) @ H_T_G @ self.graph.pose(y)
+        # NormalFlow's reference is the smaller contact: SCR is the share of its samples
+        # the other contact holds, which a smaller patch inside a larger one passes
+        y_ref = self._footprints[y].radius <= self._footprints[x].radius
+        q, c = (y, x) if y_ref else (x, y)
+        inits = starts(se3.inverse(x_T_y) if y_ref else x_T_y, self._footprints[q].centre, self._footprints[q].radius)
+        res = self.detector.verify(self.keyframes[q], [self.keyframes[c]] * len(inits), inits)
+        q_T_c, ok = res.tar_T_ref.double().cpu(), res.ok.cpu()
+        if not bool(ok[0]):
+            return None
+        same = consistent(q_T_c[:1].expand_as(q_T_c), q_T_c, torch.zeros(len(q_T_c), dtype=torch.float64),
+                          self.gate.model)
+        if bool((ok & ~same).any()):
+            self.stats.probes_ambiguous += 1
+            return None
+        x_T_y_meas = se3.inverse(q_T_c[0]) if y_ref else q_T_c[0]
+        return Loop(x, y, x_T_y_meas, float(res.ccs[0]), float(res.scr[0]), 0, se3.inverse(x_T_y), False, probe=True)
+
+    def _probe_ok(self, kf_id: int, trust_repetitive: bool) -> bool:
+        """A keyframe may take part in a probe: it has contact, and its texture does not
+        match itself elsewhere (unless such loops are trusted)."""
+        fp = self._footprints[kf_id]
+        return (fp is not None and fp.radius > 0.0
+                and (trust_repetitive or not self.detector.is_repetitive(self.keyframes[kf_id])))
+
     def _refine(self, loops: list[Loop]) -> list[Loop]:
         """Accepted loops re-measured over ``posegraph.refine_n_samples`` reference pixels
         (every contact pixel by default); a loop whose refinement fails its checks keeps
@@ -235,6 +324,9 @@ class BackEnd:
             "loop_gate": asdict(self.gate.stats) if self.gate is not None else None,
             "refined_loops": st.refined,
             "refine_failed": st.refine_failed,
+            "probes": st.probes,
+            "probe_loops": st.probe_loops,
+            "probes_ambiguous": st.probes_ambiguous,
             "timing_ms_per_keyframe": {"loop_detection": med(st.time_loop_detection),
                                        "pose_graph": med(st.time_pose_graph),
                                        "coverage": med(st.time_coverage),

@@ -243,6 +243,11 @@ class LoopConfig:
     # loops on a texture that matches another part of itself (loop.matching.self_similarity)
     # are accepted only within a group where the estimate predicts them, unless trusted
     trust_repetitive: bool = False
+    # probes (tactile_slam/loop/probe.py): per keyframe, up to this many pairs of groups whose
+    # waiting loops come from fewer than merge_min_pairs query keyframes get one predicted
+    # keyframe pair verified by NormalFlow, a second query for the gate; joins more sessions
+    # on asymmetric objects, confirms false loops on symmetric ones (docs/loops.md); 0: off
+    probes: int = 0
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
     coverage_depth_gate_mm: float | None = None  # count overlap only within this depth

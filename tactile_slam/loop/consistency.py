@@ -295,25 +295,23 @@ class LoopGate:
         """A between factor the caller added to the pose graph (odometry or loop)."""
         self.motion.add_edge(i, j, i_T_j)
 
-    def select(self, t: int, loops: list, group_of, pose) -> Selection:
-        """Accept, defer or reject the verified loops of keyframe ``t``.
+    def select(self, loops: list, group_of, pose) -> Selection:
+        """Accept, defer or reject the verified loops of the keyframe just added.
 
         Args:
-            t: the query keyframe.
-            loops: its verified loops (objects with ``ref_id``, ``tar_id`` = ``t`` and
-                ``ref_T_tar`` ``(4, 4)`` metres).
+            loops: its verified loops, and probes (their ``tar_id`` another keyframe of a
+                group; objects with ``ref_id``, ``tar_id`` and ``ref_T_tar`` ``(4, 4)`` metres).
             group_of: keyframe id -> group id (current).
             pose: keyframe id -> ``(4, 4)`` float64 ``start_T_kf`` (current estimate).
         """
-        g_t = group_of(t)
         # loops within one group now: the query's own, and pending ones whose groups were joined
         joined = [p for p in self.pending
                   if p.recheck or (len(p.groups) == 2 and group_of(p.a_id) == group_of(p.b_id))]
         self.pending = [p for p in self.pending if not any(p is q for q in joined)]
-        mine = [PendingLoop(lp.ref_id, t, lp.ref_T_tar, lp, repetitive=lp.repetitive and not self.trust_repetitive)
-                for lp in loops]
-        accepted = self._check_within(joined + [p for p in mine if group_of(p.a_id) == g_t], pose)
-        new = self._drop_repetitive([p for p in mine if group_of(p.a_id) != g_t])
+        mine = [PendingLoop(lp.ref_id, lp.tar_id, lp.ref_T_tar, lp,
+                            repetitive=lp.repetitive and not self.trust_repetitive) for lp in loops]
+        accepted = self._check_within(joined + [p for p in mine if group_of(p.a_id) == group_of(p.b_id)], pose)
+        new = self._drop_repetitive([p for p in mine if group_of(p.a_id) != group_of(p.b_id)])
         self.pending += new
         self.stats.deferred += len(new)
         dirty: dict[frozenset, list[PendingLoop]] = {}

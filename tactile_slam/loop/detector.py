@@ -69,6 +69,8 @@ class Loop:
         repetitive: either keyframe's texture matches another part of itself
             (:func:`~tactile_slam.loop.matching.self_similarity`): the match may be a whole
             period or a symmetry away, so the loop is no independent evidence.
+        probe: found by verifying a pair predicted by another loop between the same two
+            groups (:mod:`tactile_slam.loop.probe`), not by SIFT retrieval (``inliers`` 0).
     """
 
     ref_id: int
@@ -79,12 +81,14 @@ class Loop:
     inliers: int
     init_tar_T_ref: torch.Tensor
     repetitive: bool = False
+    probe: bool = False
 
     def to_dict(self) -> dict:
         """JSON-ready: poses as nested lists (metres)."""
         return {"ref_id": self.ref_id, "tar_id": self.tar_id, "ref_T_tar": self.ref_T_tar.tolist(),
                 "ccs": self.ccs, "scr": self.scr, "inliers": self.inliers,
-                "init_tar_T_ref": self.init_tar_T_ref.tolist(), "repetitive": self.repetitive}
+                "init_tar_T_ref": self.init_tar_T_ref.tolist(), "repetitive": self.repetitive,
+                "probe": self.probe}
 
 
 @dataclass
@@ -208,14 +212,14 @@ class LoopDetector:
         del self._features[kf_id]
         self._matchable.discard(kf_id)
         del self._footprints[kf_id]
-        self._repetitive.discard(kf_id)
         self.index.remove(kf_id)
         self._removed.add(kf_id)
 
     def is_repetitive(self, keyframe: Keyframe) -> bool:
         """Whether the keyframe's texture matches another part of itself
-        (:func:`~tactile_slam.loop.matching.self_similarity`); stored for added keyframes."""
-        if keyframe.id in self._features:
+        (:func:`~tactile_slam.loop.matching.self_similarity`); stored for added keyframes
+        (removed ones included)."""
+        if keyframe.id in self._features or keyframe.id in self._removed:
             return keyframe.id in self._repetitive
         return self_similarity(self._query_features(keyframe), self.ransac) is not None
 

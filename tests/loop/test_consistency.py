@@ -119,10 +119,10 @@ def test_doubtful_loops_within_a_group_need_agreement():
     for k, Z in enumerate(odo):
         gate.add_factor(k, k + 1, Z)
     first = loop(20, 26, se3.inverse(true[20]) @ true[26])
-    assert gate.select(26, [first], lambda k: 0, lambda k: est[k]).accepted == []
+    assert gate.select([first], lambda k: 0, lambda k: est[k]).accepted == []
     assert gate.stats.doubtful == 1 and len(gate.pending) == 1
     second = loop(21, 28, se3.inverse(true[21]) @ true[28])
-    sel = gate.select(28, [second], lambda k: 0, lambda k: est[k])
+    sel = gate.select([second], lambda k: 0, lambda k: est[k])
     assert sel.accepted == [first, second] and sel.merges == [] and gate.pending == []
 
 
@@ -139,7 +139,7 @@ def test_symmetric_false_loop_rejected_true_loop_with_drift_accepted():
     # the drifted estimate really is off: a fixed tolerance of the base alone would reject the true loop
     rot, trans = pose_error((se3.inverse(est[0]) @ est[t])[None], true_loop.ref_T_tar[None])
     assert float(rot) > 1.0 and float(trans) > MODEL.base_trans_mm
-    sel = gate.select(t, [true_loop, false_loop], lambda k: 0, lambda k: est[k])
+    sel = gate.select([true_loop, false_loop], lambda k: 0, lambda k: est[k])
     assert sel.accepted == [true_loop] and sel.merges == []
     assert gate.stats.rejected_consistency == 1
 
@@ -153,7 +153,7 @@ def test_beyond_a_half_turn_of_drift_nothing_is_rejected():
     gate = LoopGate(loose)
     for k in range(7):
         gate.add_factor(k, k + 1, se3.inverse(true[k]) @ true[k + 1])
-    sel = gate.select(7, [loop(0, 7, symmetric_false(true, 0, 7))], lambda k: 0, lambda k: true[k])
+    sel = gate.select([loop(0, 7, symmetric_false(true, 0, 7))], lambda k: 0, lambda k: true[k])
     assert sel.accepted == [] and gate.stats.rejected_consistency == 0 and gate.stats.doubtful == 1
 
 
@@ -212,10 +212,10 @@ def _apply(sel, graph, groups, gate):
 def test_single_inter_group_loop_is_not_merged(two_sessions):
     true, graph, groups, gate = two_sessions
     false_loop = loop(3, 16, symmetric_false(true, 3, 16))
-    sel = gate.select(16, [false_loop], groups.group_of, graph.pose)
+    sel = gate.select([false_loop], groups.group_of, graph.pose)
     assert sel.accepted == [] and sel.merges == [] and len(gate.pending) == 1
     # a second false loop from the *same* query keyframe is no independent evidence
-    sel = gate.select(16, [loop(5, 16, symmetric_false(true, 5, 16))], groups.group_of,
+    sel = gate.select([loop(5, 16, symmetric_false(true, 5, 16))], groups.group_of,
                       graph.pose)
     assert sel.merges == [] and groups.group_of(16) != groups.group_of(3)
 
@@ -230,8 +230,8 @@ def test_two_queries_matching_one_coverage_keyframe(two_sessions, distinct, merg
     for k in range(29):
         if groups.group_of(k) == groups.group_of(k + 1):
             gate.add_factor(k, k + 1, se3.inverse(true[k]) @ true[k + 1])
-    gate.select(17, [loop(12, 17, se3.inverse(true[12]) @ true[17])], groups.group_of, graph.pose)
-    sel = gate.select(19, [loop(12, 19, se3.inverse(true[12]) @ true[19])], groups.group_of, graph.pose)
+    gate.select([loop(12, 17, se3.inverse(true[12]) @ true[17])], groups.group_of, graph.pose)
+    sel = gate.select([loop(12, 19, se3.inverse(true[12]) @ true[19])], groups.group_of, graph.pose)
     assert bool(sel.merges) == merges and len(sel.accepted) == (2 if merges else 0)
     if merges:
         _apply(sel, graph, groups, gate)
@@ -246,17 +246,17 @@ def test_two_agreeing_inter_group_loops_merge_with_correct_poses(two_sessions):
     true, graph, groups, gate = two_sessions
     false_loop = loop(3, 17, symmetric_false(true, 3, 17))
     first = loop(12, 17, se3.inverse(true[12]) @ true[17])
-    sel = gate.select(17, [first, false_loop], groups.group_of, graph.pose)
+    sel = gate.select([first, false_loop], groups.group_of, graph.pose)
     assert sel.merges == []
     second = loop(10, 19, se3.inverse(true[10]) @ true[19])
-    sel = gate.select(19, [second], groups.group_of, graph.pose)
+    sel = gate.select([second], groups.group_of, graph.pose)
     assert {(lp.ref_id, lp.tar_id) for lp in sel.accepted} == {(12, 17), (10, 19)}
     assert len(sel.merges) == 1 and [(p.a_id, p.b_id) for p in gate.pending] == [(3, 17)]
     _apply(sel, graph, groups, gate)
     assert groups.group_of(29) == groups.group_of(0)
     solve(graph)
     # the false loop left out of the merge meets the merged estimate at the next keyframe
-    assert gate.select(20, [], groups.group_of, graph.pose).accepted == [] and gate.pending == []
+    assert gate.select([], groups.group_of, graph.pose).accepted == [] and gate.pending == []
     assert gate.stats.rejected_consistency == 1
     est = graph.poses()
     rot, trans = pose_error(se3.inverse(est[0]) @ est, true)  # true: start = keyframe 0
@@ -270,8 +270,8 @@ def test_disagreeing_supported_sets_do_not_merge(two_sessions):
                loop(2, 17, symmetric_false(true, 2, 17))]
     loops19 = [loop(10, 19, se3.inverse(true[10]) @ true[19]),
                loop(4, 19, symmetric_false(true, 4, 19))]
-    gate.select(17, loops17, groups.group_of, graph.pose)
-    sel = gate.select(19, loops19, groups.group_of, graph.pose)
+    gate.select(loops17, groups.group_of, graph.pose)
+    sel = gate.select(loops19, groups.group_of, graph.pose)
     assert sel.merges == [] and sel.accepted == [] and gate.stats.ambiguous == 1 and len(gate.pending) == 4
 
 
@@ -279,12 +279,12 @@ def test_pending_loops_are_checked_once_their_groups_join(two_sessions):
     true, graph, groups, gate = two_sessions
     late = loop(1, 28, se3.inverse(true[1]) @ true[28])
     late_false = loop(6, 27, symmetric_false(true, 6, 27))
-    gate.select(27, [late_false], groups.group_of, graph.pose)
-    gate.select(28, [late], groups.group_of, graph.pose)
+    gate.select([late_false], groups.group_of, graph.pose)
+    gate.select([late], groups.group_of, graph.pose)
     # other loops merge the groups, then the pending loops are swept
     joint = loop(12, 17, se3.inverse(true[12]) @ true[17])
     _apply(Selection([joint], [(17, 12, joint.ref_T_tar)]), graph, groups, gate)
-    sel = gate.select(29, [], groups.group_of, graph.pose)
+    sel = gate.select([], groups.group_of, graph.pose)
     assert sel.accepted == [late] and gate.pending == [] and gate.stats.rejected_consistency == 1
 
 
@@ -330,9 +330,9 @@ def test_three_single_loops_closing_a_cycle_merge_three_groups(three_sessions):
     gate = _gate(factors)
     rel = lambda r, t: se3.inverse(true[r]) @ true[t]  # noqa: E731
     a_b, b_c, c_a = loop(12, 17, rel(12, 17)), loop(27, 32, rel(27, 32)), loop(5, 35, rel(5, 35))
-    assert gate.select(17, [a_b], groups.group_of, graph.pose).merges == []
-    assert gate.select(32, [b_c], groups.group_of, graph.pose).merges == []
-    sel = gate.select(35, [c_a], groups.group_of, graph.pose)
+    assert gate.select([a_b], groups.group_of, graph.pose).merges == []
+    assert gate.select([b_c], groups.group_of, graph.pose).merges == []
+    sel = gate.select([c_a], groups.group_of, graph.pose)
     assert {(lp.ref_id, lp.tar_id) for lp in sel.accepted} == {(12, 17), (27, 32), (5, 35)}
     assert len(sel.merges) == 2 and gate.pending == [] and gate.stats.cycles == 1
     _apply(sel, graph, groups, gate)
@@ -350,8 +350,8 @@ def test_cycle_support_counts_distinct_queries(three_sessions, min_pairs, merges
     true, graph, groups, factors = three_sessions
     gate = _gate(factors, min_pairs=min_pairs)
     rel = lambda r, t: se3.inverse(true[r]) @ true[t]  # noqa: E731
-    gate.select(17, [loop(12, 17, rel(12, 17))], groups.group_of, graph.pose)
-    sel = gate.select(35, [loop(5, 35, rel(5, 35)), loop(24, 35, rel(24, 35))], groups.group_of, graph.pose)
+    gate.select([loop(12, 17, rel(12, 17))], groups.group_of, graph.pose)
+    sel = gate.select([loop(5, 35, rel(5, 35)), loop(24, 35, rel(24, 35))], groups.group_of, graph.pose)
     assert bool(sel.merges) == merges and len(sel.accepted) == (3 if merges else 0)
     assert gate.stats.cycles == int(merges)
 
@@ -363,7 +363,7 @@ def test_cycle_with_a_false_loop_or_switched_off_does_not_merge(three_sessions):
         gate = _gate(factors, cycles=cycles)
         b_c = loop(27, 32, symmetric_false(true, 27, 32) if false_leg else rel(27, 32))
         for t, lp in ((17, loop(12, 17, rel(12, 17))), (32, b_c), (35, loop(5, 35, rel(5, 35)))):
-            assert gate.select(t, [lp], groups.group_of, graph.pose).merges == []
+            assert gate.select([lp], groups.group_of, graph.pose).merges == []
         assert len(gate.pending) == 3 and gate.stats.cycles == 0
 
 
@@ -373,10 +373,10 @@ def test_contradicted_cycle_does_not_merge(three_sessions):
     true, graph, groups, factors = three_sessions
     gate = _gate(factors)
     rel = lambda r, t: se3.inverse(true[r]) @ true[t]  # noqa: E731
-    gate.select(17, [loop(12, 17, rel(12, 17))], groups.group_of, graph.pose)
-    gate.select(19, [loop(3, 19, symmetric_false(true, 3, 19))], groups.group_of, graph.pose)
-    gate.select(32, [loop(27, 32, rel(27, 32))], groups.group_of, graph.pose)
-    sel = gate.select(35, [loop(5, 35, rel(5, 35))], groups.group_of, graph.pose)
+    gate.select([loop(12, 17, rel(12, 17))], groups.group_of, graph.pose)
+    gate.select([loop(3, 19, symmetric_false(true, 3, 19))], groups.group_of, graph.pose)
+    gate.select([loop(27, 32, rel(27, 32))], groups.group_of, graph.pose)
+    sel = gate.select([loop(5, 35, rel(5, 35))], groups.group_of, graph.pose)
     assert sel.merges == [] and sel.accepted == [] and len(gate.pending) == 4
     assert gate.stats.cycles == 0 and gate.stats.ambiguous >= 1
 

@@ -65,6 +65,15 @@ def bumpy(seed: int = 0, n: int = 14, amp: float = 60e-6) -> Surface:
     return Surface(bumps=bumps)
 
 
+def speckled(seed: int = 0, n: int = 120, amp: float = 60e-6) -> Surface:
+    """A dome with ``n`` small random bumps and dents (sigma 0.15-0.4 mm, within 5 mm of the
+    centre): no waves, so no turn or shift maps the texture onto itself."""
+    g = torch.Generator().manual_seed(seed)
+    u = lambda lo, hi: float(lo + (hi - lo) * torch.rand((), generator=g, dtype=torch.float64))  # noqa: E731
+    bumps = [(u(-1, 1) * amp, u(0.15e-3, 0.4e-3), u(-5e-3, 5e-3), u(-5e-3, 5e-3)) for _ in range(n)]
+    return Surface(bumps=bumps)
+
+
 def rigid(rx_deg=0.0, ry_deg=0.0, rz_deg=0.0, tx_mm=0.0, ty_mm=0.0, tz_mm=0.0) -> torch.Tensor:
     """``(4, 4)`` float64 ``[Rz Ry Rx | t]``, angles in degrees, translation in mm."""
     ax, ay, az = (math.radians(a) for a in (rx_deg, ry_deg, rz_deg))
