@@ -33,7 +33,7 @@ import numpy as np
 import torch
 
 from tactile_slam.bench.common import rendered_frames, write_json
-from tactile_slam.config import Config
+from tactile_slam.config import Config, load_config
 from tactile_slam.eval.recon_metrics import recon_report, surface_metrics, touch_poses
 from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.io import open_source
@@ -63,6 +63,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--partial", action="store_true", help="trim the Poisson mesh (watertight=False)")
     parser.add_argument("--work", default=None, help="keep episodes and runs here (default: a temporary folder)")
+    parser.add_argument("--config", default=None,
+                        help="YAML config or preset for the system runs (default: GelSight Mini defaults)")
     parser.add_argument("--timing", type=int, default=0, metavar="N",
                         help="also time fusion + meshing of N touches spread over a 120 mm lime")
 
@@ -160,7 +162,7 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
 
 def run(args):
     torch.set_num_threads(1)
-    config = Config()
+    config = load_config(args.config)
     config.recon.watertight = not args.partial
     doc = {"settings": vars(args) | {"func": None}, "runs": []}
     path = write_json(args.out, "reconstruction", doc)

@@ -10,7 +10,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from tactile_slam.bench import reconstruction
-from tactile_slam.config import Config
+from tactile_slam.config import Config, ConfigError
 from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -127,3 +127,24 @@ def test_variants_scored_before_a_crash_are_already_written(tmp_path, monkeypatc
     runs = json.loads((tmp_path / "reconstruction.json").read_text())["results"]["runs"]
     assert [r["variant"] for r in runs] == list(reconstruction.VARIANTS)[:2]
     assert all(math.isfinite(r["mesh"]["gt_pose"]["chamfer_mm"]) for r in runs)
+
+
+def test_config_file_reaches_the_system_runs(tmp_path, monkeypatch):
+    """``--config`` (a YAML of our layout) is the configuration every object run gets; the
+    bench's own ``--partial`` still decides the mesh."""
+    seen = []
+
+    def capture(name, size_label, args, config, work):
+        seen.append(config)
+        yield from ()
+
+    monkeypatch.setattr(reconstruction, "object_run", capture)
+    cfg = tmp_path / "probes.yaml"
+    cfg.write_text("loop:\n  probes: 3\n")
+    args = tiny_args(tmp_path)
+    args.config = str(cfg)
+    reconstruction.run(args)
+    assert len(seen) == 1 and seen[0].loop.probes == 3 and seen[0].recon.watertight is True
+    args.config = str(tmp_path / "missing.yaml")
+    with pytest.raises(ConfigError, match="config file not found"):
+        reconstruction.run(args)
