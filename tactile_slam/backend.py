@@ -43,10 +43,11 @@ import numpy as np
 import torch
 
 from tactile_slam.config import Config
-from tactile_slam.loop.consistency import DriftModel, LoopGate, consistent
+from tactile_slam.loop.ambiguity import elsewhere, starts
+from tactile_slam.loop.consistency import DriftModel, LoopGate
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import Loop, LoopDetector
-from tactile_slam.loop.probe import best_pair, starts
+from tactile_slam.loop.probe import best_pair
 from tactile_slam.loop.retrieval import Footprint, footprints
 from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
@@ -65,6 +66,7 @@ class BackEndStats:
     merges: int = 0
     refined: int = 0  # loops re-measured (refinements that failed their checks keep the first value)
     refine_failed: int = 0
+    ambiguous_loops: int = 0  # loops between groups whose pair also verified elsewhere (held as repetitive)
     probes: int = 0  # predicted pairs verified for loops waiting between groups
     probe_loops: int = 0  # of them, verified (they still pass the loop gate like any loop)
     probes_ambiguous: int = 0  # verified, but an alternative start verified elsewhere too
@@ -177,6 +179,7 @@ class BackEnd:
                 eligible = [k for k in self.coverage.active if k in self.detector]
                 loops = self.detector.detect(kf, eligible, self._group_view, self._pose_view, self.keyframes)
             self.detector.add(kf)
+            loops = self._check_ambiguity(kf, loops)
             loops = loops + self._probe(loops)
         t1 = time.perf_counter()
         self.stats.time_loop_detection.append(t1 - t0)
@@ -224,6 +227,31 @@ class BackEnd:
         self.stats.time_coverage.append(time.perf_counter() - t2)
         return loops
 
+    def _check_ambiguity(self, kf: Keyframe, loops: list[Loop]) -> list[Loop]:
+        """``loops`` of query ``kf`` with ``ambiguous`` set on those between two groups whose
+        pair also verifies from an alternative start at another pose
+        (:mod:`tactile_slam.loop.ambiguity`, ``loop.check_ambiguity``); one NormalFlow batch
+        with the query as the shared reference."""
+        fp = self._footprints[kf.id]
+        if (not self.config.loop.check_ambiguity or self.gate is None or self.detector.mode == "only_sift"
+                or fp is None or fp.radius <= 0.0):
+            return loops
+        group_of = self.sessions.group_of
+        check = [i for i, lp in enumerate(loops) if not lp.repetitive and group_of(lp.ref_id) != group_of(kf.id)]
+        if not check:
+            return loops
+        inits = torch.cat([starts(se3.inverse(loops[i].ref_T_tar.double()), fp.centre, fp.radius) for i in check])
+        S = len(inits) // len(check)
+        res = self.detector.verify(kf, [self.keyframes[loops[i].ref_id] for i in check for _ in range(S)], inits)
+        flag = elsewhere(res.tar_T_ref.double().cpu().reshape(len(check), S, 4, 4), res.ok.cpu().reshape(len(check), S),
+                         self.gate.model).tolist()
+        out = list(loops)
+        for i, amb in zip(check, flag):
+            if amb:
+                out[i] = replace(loops[i], ambiguous=True)
+        self.stats.ambiguous_loops += sum(flag)
+        return out
+
     def _probe(self, loops: list[Loop]) -> list[Loop]:
         """Verified probes (``Loop.probe``) for the group pairs whose waiting loops (the
         gate's, and ``loops`` of the new keyframe) come from fewer than
@@ -235,7 +263,8 @@ class BackEnd:
         group_of, trust = self.sessions.group_of, self.config.loop.trust_repetitive
         waiting: dict[frozenset, list[tuple[int, int, torch.Tensor]]] = {}
         for a, b, a_T_b, rep in ([(p.a_id, p.b_id, p.a_T_b, p.repetitive) for p in self.gate.pending]
-                                 + [(lp.ref_id, lp.tar_id, lp.ref_T_tar, lp.repetitive and not trust) for lp in loops]):
+                                 + [(lp.ref_id, lp.tar_id, lp.ref_T_tar, (lp.repetitive or lp.ambiguous) and not trust)
+                                    for lp in loops]):
             key = frozenset((group_of(a), group_of(b)))
             if len(key) == 2 and not rep:
                 waiting.setdefault(key, []).append((a, b, a_T_b))
@@ -273,7 +302,7 @@ class BackEnd:
 
     def _probe_pair(self, x: int, y: int, H_T_G: torch.Tensor) -> Loop | None:
         """NormalFlow on ``(x, y)`` from the pose ``H_T_G`` predicts and from the alternatives
-        of :func:`~tactile_slam.loop.probe.starts`: a loop when the prediction verifies
+        of :func:`~tactile_slam.loop.ambiguity.starts`: a loop when the prediction verifies
         and no alternative verifies somewhere else (beyond the gate's base tolerance)."""
         x_T_y = se3.inverse(self.graph.pose(x)) @ H_T_G @ self.graph.pose(y)
         # NormalFlow's reference is the smaller contact: SCR is the share of its samples
@@ -285,9 +314,7 @@ class BackEnd:
         q_T_c, ok = res.tar_T_ref.double().cpu(), res.ok.cpu()
         if not bool(ok[0]):
             return None
-        same = consistent(q_T_c[:1].expand_as(q_T_c), q_T_c, torch.zeros(len(q_T_c), dtype=torch.float64),
-                          self.gate.model)
-        if bool((ok & ~same).any()):
+        if bool(elsewhere(q_T_c[None], ok[None], self.gate.model)):
             self.stats.probes_ambiguous += 1
             return None
         x_T_y_meas = se3.inverse(q_T_c[0]) if y_ref else q_T_c[0]
@@ -324,6 +351,7 @@ class BackEnd:
             "loop_gate": asdict(self.gate.stats) if self.gate is not None else None,
             "refined_loops": st.refined,
             "refine_failed": st.refine_failed,
+            "ambiguous_loops": st.ambiguous_loops,
             "probes": st.probes,
             "probe_loops": st.probe_loops,
             "probes_ambiguous": st.probes_ambiguous,

@@ -243,6 +243,10 @@ class LoopConfig:
     # loops on a texture that matches another part of itself (loop.matching.self_similarity)
     # are accepted only within a group where the estimate predicts them, unless trusted
     trust_repetitive: bool = False
+    # loops between groups whose pair also verifies from a start half a contact radius away
+    # or a quarter/half turn round, at another pose (tactile_slam/loop/ambiguity.py), are
+    # held like repetitive ones (trust_repetitive trusts both)
+    check_ambiguity: bool = True
     # probes (tactile_slam/loop/probe.py): per keyframe, up to this many pairs of groups whose
     # waiting loops come from fewer than merge_min_pairs query keyframes get one predicted
     # keyframe pair verified by NormalFlow, a second query for the gate; joins more sessions

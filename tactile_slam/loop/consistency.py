@@ -210,7 +210,7 @@ class GateStats:
     or a closed cycle that another loop between its groups contradicts (no merge);
     ``cycles``: cycles of three groups closed by single loops (each merges three groups);
     ``repetitive``: loops between groups on a texture that matches itself elsewhere
-    (``Loop.repetitive``): dropped;
+    (``Loop.repetitive``) or whose pair also verifies elsewhere (``Loop.ambiguous``): dropped;
     ``pending``: loops waiting now.
     """
 
@@ -265,7 +265,8 @@ class LoopGate:
             default such a loop is used only within a group, where the estimate predicts it
             (within the tolerance, or corroborated within the doubt band); between groups it
             is dropped: two keyframes on one periodic texture match the same wrong period
-            alike, and nothing else can tell.
+            alike, and nothing else can tell. Loops marked ``ambiguous`` (the pair also
+            verifies elsewhere, :mod:`tactile_slam.loop.ambiguity`) are treated the same.
 
     The caller reports every factor it adds (:meth:`add_factor`) and calls :meth:`select`
     once per keyframe with its verified loops, after the keyframe's node and odometry are in.
@@ -309,7 +310,7 @@ class LoopGate:
                   if p.recheck or (len(p.groups) == 2 and group_of(p.a_id) == group_of(p.b_id))]
         self.pending = [p for p in self.pending if not any(p is q for q in joined)]
         mine = [PendingLoop(lp.ref_id, lp.tar_id, lp.ref_T_tar, lp,
-                            repetitive=lp.repetitive and not self.trust_repetitive) for lp in loops]
+                            repetitive=(lp.repetitive or lp.ambiguous) and not self.trust_repetitive) for lp in loops]
         accepted = self._check_within(joined + [p for p in mine if group_of(p.a_id) == group_of(p.b_id)], pose)
         new = self._drop_repetitive([p for p in mine if group_of(p.a_id) != group_of(p.b_id)])
         self.pending += new

@@ -71,6 +71,9 @@ class Loop:
             period or a symmetry away, so the loop is no independent evidence.
         probe: found by verifying a pair predicted by another loop between the same two
             groups (:mod:`tactile_slam.loop.probe`), not by SIFT retrieval (``inliers`` 0).
+        ambiguous: the pair also verifies from another start at another pose
+            (:mod:`tactile_slam.loop.ambiguity`): like ``repetitive``, no evidence of where
+            the touches were; set by the back end on loops between two groups.
     """
 
     ref_id: int
@@ -82,13 +85,14 @@ class Loop:
     init_tar_T_ref: torch.Tensor
     repetitive: bool = False
     probe: bool = False
+    ambiguous: bool = False
 
     def to_dict(self) -> dict:
         """JSON-ready: poses as nested lists (metres)."""
         return {"ref_id": self.ref_id, "tar_id": self.tar_id, "ref_T_tar": self.ref_T_tar.tolist(),
                 "ccs": self.ccs, "scr": self.scr, "inliers": self.inliers,
                 "init_tar_T_ref": self.init_tar_T_ref.tolist(), "repetitive": self.repetitive,
-                "probe": self.probe}
+                "probe": self.probe, "ambiguous": self.ambiguous}
 
 
 @dataclass

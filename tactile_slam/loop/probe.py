@@ -13,9 +13,9 @@ the wrong part of ``H``'s surface and the verification fails; if it is true, the
 loop of another query keyframe, and the gate weighs it like one.
 
 A verification that would pass wherever it starts is no evidence, so the pair is also
-verified, in the same batch, from the alternatives of :func:`starts` (the prediction shifted
-by half the contact radius along each axis, and turned by quarter turns about the contact
-centre); the probe counts only if no alternative verifies at a different pose. That removes
+verified, in the same batch, from the alternatives of
+:func:`~tactile_slam.loop.ambiguity.starts`; the probe counts only if no alternative
+verifies at a different pose (:func:`~tactile_slam.loop.ambiguity.elsewhere`). That removes
 most confirmations on straight growth lines, not all: on a mirror-symmetric object a false
 loop is a true match of the surface, and probes verify the rest of it as well (6000-frame
 simulated scans, docs/loops.md: the lime's largest group 56 -> 87 of 234 keyframes with no
@@ -95,30 +95,3 @@ def best_pair(H_T_G: torch.Tensor, start_T_x: torch.Tensor, centres_x: torch.Ten
     return divmod(flat, Y)
 
 
-
-def starts(q_T_c: torch.Tensor, centre: torch.Tensor, radius_m: float) -> torch.Tensor:
-    """The predicted placement and the alternatives a probe must rule out.
-
-    Args:
-        q_T_c: ``(4, 4)`` float64 predicted pose of keyframe ``c`` in keyframe ``q`` (metres).
-        centre: ``(3,)`` ``q``'s contact centre in its sensor frame (metres).
-        radius_m: ``q``'s footprint radius (metres).
-
-    Returns:
-        ``(8, 4, 4)`` float64: ``q_T_c``; then ``q_T_c`` shifted by half the radius along
-        +x, -x, +y, -y of ``q``'s sensor frame; then turned by a quarter, a half and three
-        quarters about the sensor z axis through ``centre``.
-    """
-    if q_T_c.shape != (4, 4) or centre.shape != (3,):
-        raise ValueError(f"need a (4, 4) pose and a (3,) centre, got {tuple(q_T_c.shape)} and {tuple(centre.shape)}")
-    if not (math.isfinite(radius_m) and radius_m > 0.0):
-        raise ValueError(f"radius must be finite and positive, got {radius_m}")
-    moves = torch.eye(4, dtype=torch.float64).repeat(7, 1, 1)
-    h = radius_m / 2.0
-    moves[:4, :2, 3] = torch.tensor([[h, 0.0], [-h, 0.0], [0.0, h], [0.0, -h]], dtype=torch.float64)
-    a = torch.deg2rad(torch.tensor([90.0, 180.0, 270.0], dtype=torch.float64))
-    R = moves[4:, :3, :3]
-    R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1] = a.cos(), -a.sin(), a.sin(), a.cos()
-    c = centre.double()
-    moves[4:, :3, 3] = c - R @ c  # rotation about c: x -> R (x - c) + c
-    return torch.cat([q_T_c.double()[None], moves @ q_T_c.double()])

@@ -1,0 +1,102 @@
+"""Alternative starts (tactile_slam/loop/ambiguity.py) and the back end holding loops
+between groups whose pair also verifies elsewhere (loop.check_ambiguity)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from tactile_slam.backend import BackEnd
+from tactile_slam.config import Config
+from tactile_slam.loop.ambiguity import elsewhere, starts
+from tactile_slam.loop.consistency import DriftModel
+from tactile_slam.posegraph import se3
+from tests.loop.test_probe import _sessions
+from tests.registration.surfaces import rigid, speckled, textured
+
+EYE = torch.eye(4, dtype=torch.float64)
+MODEL = DriftModel(base_rot_deg=3.0, base_trans_mm=0.5, rot_deg_per_mm=0.1, trans_mm_per_mm=0.02, lever_mm=12.7)
+
+
+def test_starts_are_the_prediction_its_shifts_and_turns_about_the_centre():
+    q_T_c = rigid(rx_deg=2.0, rz_deg=10.0, tx_mm=0.4, ty_mm=-0.3)
+    centre = torch.tensor([0.5e-3, -0.2e-3, -0.4e-3], dtype=torch.float64)
+    out = starts(q_T_c, centre, 2.0e-3)
+    assert out.shape == (8, 4, 4) and out.dtype == torch.float64
+    torch.testing.assert_close(out[0], q_T_c)
+    moves = out @ se3.inverse(q_T_c)  # what was applied on top of the prediction
+    torch.testing.assert_close(moves[1:5, :3, :3], EYE[:3, :3].expand(4, 3, 3))
+    torch.testing.assert_close(moves[1:5, :3, 3], torch.tensor([[1e-3, 0, 0], [-1e-3, 0, 0], [0, 1e-3, 0],
+                                                                [0, -1e-3, 0]], dtype=torch.float64))
+    for k, deg in zip(range(5, 8), (90.0, 180.0, 270.0)):
+        angle = math.degrees(math.atan2(float(moves[k, 1, 0]), float(moves[k, 0, 0]))) % 360.0
+        assert angle == pytest.approx(deg)
+        torch.testing.assert_close(moves[k, :3, :3] @ centre + moves[k, :3, 3], centre)  # the centre stays
+
+
+def test_starts_refuses_bad_input():
+    with pytest.raises(ValueError, match="pose"):
+        starts(EYE[:3], torch.zeros(3, dtype=torch.float64), 1e-3)
+    for bad in (0.0, -1e-3, math.nan):
+        with pytest.raises(ValueError, match="radius"):
+            starts(EYE, torch.zeros(3, dtype=torch.float64), bad)
+
+
+def test_elsewhere_needs_an_alternative_verified_beyond_the_base_tolerance():
+    first = rigid(rz_deg=10.0, tx_mm=1.0)
+    near = rigid(rz_deg=11.0, tx_mm=1.2)  # 1 deg, 0.2 mm: the same alignment
+    far = rigid(rz_deg=10.0, tx_mm=2.0)  # 1 mm away
+    turned = rigid(rz_deg=190.0, tx_mm=1.0)
+    T = torch.stack([torch.stack([first, near, far, turned])] * 4)  # (4, 4 starts, 4, 4)
+    ok = torch.tensor([[True, True, False, False],  # only the same alignment verified
+                       [True, False, True, False],  # verified 1 mm away
+                       [True, False, False, True],  # verified half a turn round
+                       [False, False, False, False]])
+    assert elsewhere(T, ok, MODEL).tolist() == [False, True, True, False]
+    assert elsewhere(T, ok, MODEL.scaled(3.0)).tolist() == [False, False, True, False]  # 1 mm within 1.5 mm
+    with pytest.raises(ValueError, match="S, 4, 4"):
+        elsewhere(T[:, :3], ok, MODEL)
+
+
+def _backend(kfs, check: bool, trust: bool = False) -> BackEnd:
+    cfg = Config()
+    be = BackEnd(replace(cfg, loop=replace(cfg.loop, check_ambiguity=check, trust_repetitive=trust)))
+    for k in kfs[:3]:
+        be.add(k)
+    return be
+
+
+def test_loop_between_groups_on_a_texture_that_verifies_elsewhere_is_held():
+    """Two sessions on the crossed-sinusoid dome (``textured``): keyframe 2's SIFT loop to
+    session 0 is right, but the pair also verifies from a start half a contact away (12 deg,
+    2 mm off); it cannot say where the touch was, so it is dropped between groups like a
+    repetitive loop, or kept waiting with ``trust_repetitive``; without the check it waits."""
+    kfs, _ = _sessions(textured(0))
+    checked, unchecked, trusted = _backend(kfs, True), _backend(kfs, False), _backend(kfs, True, trust=True)
+    assert checked.stats.ambiguous_loops == 1 and checked.gate.pending == [] and checked.gate.stats.repetitive == 1
+    assert unchecked.stats.ambiguous_loops == 0 and [p.b_id for p in unchecked.gate.pending] == [2]
+    assert trusted.stats.ambiguous_loops == 1 and [p.b_id for p in trusted.gate.pending] == [2]
+    assert trusted.gate.pending[0].loop.ambiguous and trusted.gate.pending[0].loop.to_dict()["ambiguous"] is True
+    assert checked.summary()["ambiguous_loops"] == 1
+
+
+def test_loop_between_groups_on_random_bumps_is_not_held():
+    kfs, _ = _sessions(speckled(0))
+    be = _backend(kfs, True)
+    assert be.stats.ambiguous_loops == 0 and [p.b_id for p in be.gate.pending] == [2]
+    assert not be.gate.pending[0].loop.ambiguous
+
+
+def test_ambiguous_loops_are_not_probed():
+    """A probe would only corroborate a loop the gate drops: none is tried. (Keyframe 3
+    is the query, so keyframe 2 of its session could be probed.)"""
+    kfs, _ = _sessions(textured(0))
+    cfg = Config()
+    be = BackEnd(replace(cfg, loop=replace(cfg.loop, probes=2)))
+    for k in kfs:
+        be.add(k, detect=k.id != 2)
+    assert be.detector.stats.loops >= 1 and be.stats.ambiguous_loops == be.detector.stats.loops
+    assert be.stats.probes == 0 and be.group[3] != be.group[0]
