@@ -22,6 +22,8 @@ import math
 import torch
 
 from tactile_slam.loop.consistency import DriftModel, consistent
+
+
 def starts(q_T_c: torch.Tensor, centre: torch.Tensor, radius_m: float) -> torch.Tensor:
     """A pose and the alternatives that must not verify elsewhere.
 

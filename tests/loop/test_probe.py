@@ -3,7 +3,6 @@ alternative starts, and a second session joined through a predicted pair."""
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 
 import pytest
