@@ -48,7 +48,7 @@ from tactile_slam.loop.consistency import DriftModel, LoopGate
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import Loop, LoopDetector
 from tactile_slam.loop.probe import best_pair
-from tactile_slam.loop.retrieval import Footprint, footprints
+from tactile_slam.loop.retrieval import Footprint
 from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.incremental import IncrementalSolver
@@ -131,7 +131,6 @@ class BackEnd:
                                config.loop.merge_distinct, config.loop.merge_cycles, config.loop.trust_repetitive)
                      if config.loop.consistency else None)
         self._last_in_session: dict[int, int] = {}
-        self._footprints: dict[int, Footprint | None] = {}
         self._probed: set[tuple[int, int]] = set()
         self._group_view = _KeyframeView(self.keyframes, self.sessions.group_of)  # -> group id
         self._pose_view = _KeyframeView(self.keyframes, self.graph.pose)  # -> (4, 4) start_T_kf
@@ -158,7 +157,6 @@ class BackEnd:
         stays a candidate for later keyframes."""
         self.keyframes[kf.id] = kf
         self.stats.keyframes += 1
-        self._footprints[kf.id] = footprints(kf.frame.height, kf.frame.contact, kf.frame.mm_per_px / 1000.0)[0]
         prev = self._last_in_session.get(kf.session)
         if self.sessions.add_keyframe(kf.id, kf.session):
             self.graph.add_node(kf.id)
@@ -232,7 +230,7 @@ class BackEnd:
         pair also verifies from an alternative start at another pose
         (:mod:`tactile_slam.loop.ambiguity`, ``loop.check_ambiguity``); one NormalFlow batch
         with the query as the shared reference."""
-        fp = self._footprints[kf.id]
+        fp = self.detector.footprint(kf)
         if (not self.config.loop.check_ambiguity or self.gate is None or self.detector.mode == "only_sift"
                 or fp is None or fp.radius <= 0.0):
             return loops
@@ -263,8 +261,7 @@ class BackEnd:
         group_of, trust = self.sessions.group_of, self.config.loop.trust_repetitive
         waiting: dict[frozenset, list[tuple[int, int, torch.Tensor]]] = {}
         for a, b, a_T_b, rep in ([(p.a_id, p.b_id, p.a_T_b, p.repetitive) for p in self.gate.pending]
-                                 + [(lp.ref_id, lp.tar_id, lp.ref_T_tar, (lp.repetitive or lp.ambiguous) and not trust)
-                                    for lp in loops]):
+                                 + [(lp.ref_id, lp.tar_id, lp.ref_T_tar, not (lp.says_where or trust)) for lp in loops]):
             key = frozenset((group_of(a), group_of(b)))
             if len(key) == 2 and not rep:
                 waiting.setdefault(key, []).append((a, b, a_T_b))
@@ -279,7 +276,7 @@ class BackEnd:
             if not xs or not ys:
                 continue
             H_T_G = self.graph.pose(a) @ a_T_b.double() @ se3.inverse(self.graph.pose(b))
-            fx, fy = [self._footprints[k] for k in xs], [self._footprints[k] for k in ys]
+            fx, fy = [self._footprint(k) for k in xs], [self._footprint(k) for k in ys]
             allowed = torch.ones(len(xs), len(ys), dtype=torch.bool)
             row, col = {k: i for i, k in enumerate(xs)}, {k: j for j, k in enumerate(ys)}
             for x, y in self._probed:
@@ -307,9 +304,9 @@ class BackEnd:
         x_T_y = se3.inverse(self.graph.pose(x)) @ H_T_G @ self.graph.pose(y)
         # NormalFlow's reference is the smaller contact: SCR is the share of its samples
         # the other contact holds, which a smaller patch inside a larger one passes
-        y_ref = self._footprints[y].radius <= self._footprints[x].radius
+        y_ref = self._footprint(y).radius <= self._footprint(x).radius
         q, c = (y, x) if y_ref else (x, y)
-        inits = starts(se3.inverse(x_T_y) if y_ref else x_T_y, self._footprints[q].centre, self._footprints[q].radius)
+        inits = starts(se3.inverse(x_T_y) if y_ref else x_T_y, self._footprint(q).centre, self._footprint(q).radius)
         res = self.detector.verify(self.keyframes[q], [self.keyframes[c]] * len(inits), inits)
         q_T_c, ok = res.tar_T_ref.double().cpu(), res.ok.cpu()
         if not bool(ok[0]):
@@ -320,10 +317,13 @@ class BackEnd:
         x_T_y_meas = se3.inverse(q_T_c[0]) if y_ref else q_T_c[0]
         return Loop(x, y, x_T_y_meas, float(res.ccs[0]), float(res.scr[0]), 0, se3.inverse(x_T_y), False, probe=True)
 
+    def _footprint(self, kf_id: int) -> Footprint | None:
+        return self.detector.footprint(self.keyframes[kf_id])
+
     def _probe_ok(self, kf_id: int, trust_repetitive: bool) -> bool:
         """A keyframe may take part in a probe: it has contact, and its texture does not
         match itself elsewhere (unless such loops are trusted)."""
-        fp = self._footprints[kf_id]
+        fp = self._footprint(kf_id)
         return (fp is not None and fp.radius > 0.0
                 and (trust_repetitive or not self.detector.is_repetitive(self.keyframes[kf_id])))
 

@@ -310,7 +310,7 @@ class LoopGate:
                   if p.recheck or (len(p.groups) == 2 and group_of(p.a_id) == group_of(p.b_id))]
         self.pending = [p for p in self.pending if not any(p is q for q in joined)]
         mine = [PendingLoop(lp.ref_id, lp.tar_id, lp.ref_T_tar, lp,
-                            repetitive=(lp.repetitive or lp.ambiguous) and not self.trust_repetitive) for lp in loops]
+                            repetitive=not (lp.says_where or self.trust_repetitive)) for lp in loops]
         accepted = self._check_within(joined + [p for p in mine if group_of(p.a_id) == group_of(p.b_id)], pose)
         new = self._drop_repetitive([p for p in mine if group_of(p.a_id) != group_of(p.b_id)])
         self.pending += new

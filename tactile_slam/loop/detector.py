@@ -87,6 +87,12 @@ class Loop:
     probe: bool = False
     ambiguous: bool = False
 
+    @property
+    def says_where(self) -> bool:
+        """Whether the loop is evidence of where the two touches were: neither
+        ``repetitive`` nor ``ambiguous``."""
+        return not (self.repetitive or self.ambiguous)
+
     def to_dict(self) -> dict:
         """JSON-ready: poses as nested lists (metres)."""
         return {"ref_id": self.ref_id, "tar_id": self.tar_id, "ref_T_tar": self.ref_T_tar.tolist(),
@@ -156,7 +162,7 @@ class LoopDetector:
                                                    lc.retrieval_exact_max))
         self._features: dict[int, Features] = {}
         self._matchable: set[int] = set()  # ids with at least min_sift_inliers keypoints
-        self._footprints: dict[int, Footprint | None] = {}
+        self._footprints: dict[int, Footprint | None] = {}  # by id, removed keyframes included
         self._repetitive: set[int] = set()  # ids whose texture matches another part of itself
         self._query: tuple[Keyframe, Features] | None = None  # the last query's features, reused by add
         self._removed: set[int] = set()
@@ -205,8 +211,7 @@ class LoopDetector:
         if self_similarity(feats, self.ransac) is not None:
             self._repetitive.add(keyframe.id)
         self.index.add(keyframe.id, feats.descriptors)
-        self._footprints[keyframe.id] = footprints(keyframe.frame.height, keyframe.frame.contact,
-                                                   keyframe.frame.mm_per_px / 1000.0)[0]
+        self.footprint(keyframe)
         return feats
 
     def remove(self, kf_id: int) -> None:
@@ -215,9 +220,16 @@ class LoopDetector:
             raise LoopError(f"keyframe {kf_id} is not in the loop detector")
         del self._features[kf_id]
         self._matchable.discard(kf_id)
-        del self._footprints[kf_id]
         self.index.remove(kf_id)
         self._removed.add(kf_id)
+
+    def footprint(self, keyframe: Keyframe) -> Footprint | None:
+        """The keyframe's contact footprint (None without contact); computed once per
+        keyframe id and kept, for removed keyframes too."""
+        if keyframe.id not in self._footprints:
+            self._footprints[keyframe.id] = footprints(keyframe.frame.height, keyframe.frame.contact,
+                                                       keyframe.frame.mm_per_px / 1000.0)[0]
+        return self._footprints[keyframe.id]
 
     def is_repetitive(self, keyframe: Keyframe) -> bool:
         """Whether the keyframe's texture matches another part of itself
@@ -316,9 +328,7 @@ class LoopDetector:
         margin = self.config.loop.gate_margin_mm
         if margin is None or query.id not in group_of or query.id not in start_T_kf:
             return cands
-        q_fp = self._footprints.get(query.id)
-        if q_fp is None:
-            q_fp = footprints(query.frame.height, query.frame.contact, query.frame.mm_per_px / 1000.0)[0]
+        q_fp = self.footprint(query)
         if q_fp is None:
             return cands
         g = group_of[query.id]

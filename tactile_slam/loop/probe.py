@@ -18,9 +18,9 @@ verified, in the same batch, from the alternatives of
 verifies at a different pose (:func:`~tactile_slam.loop.ambiguity.elsewhere`). That removes
 most confirmations on straight growth lines, not all: on a mirror-symmetric object a false
 loop is a true match of the surface, and probes verify the rest of it as well (6000-frame
-simulated scans, docs/loops.md: the lime's largest group 56 -> 87 of 234 keyframes with no
-false loop, the seed's 421 -> 440 with two loops 1.02 and 1.12 deg off, the shell's false
-loops 4 -> 13). Hence off by default. Keyframes whose texture matches another part of
+simulated scans with the ambiguity check on, docs/loops.md: the lime's largest group 56 ->
+87 of 234 keyframes with no false loop, the seed's 418 -> 433 with two loops 1.02 and 1.12
+deg off, the shell's false loops 1 -> 9). Hence off by default. Keyframes whose texture matches another part of
 itself (``Loop.repetitive``) are not probed, as their loops are not merged
 (``loop.trust_repetitive``).
 """

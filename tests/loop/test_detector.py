@@ -12,6 +12,7 @@ import torch
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import Frame
 from tactile_slam.loop.detector import Loop, LoopDetector, LoopError
+from tactile_slam.loop.retrieval import footprints
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import register
 from tactile_slam.registration.result import pose_error
@@ -102,6 +103,18 @@ def test_removed_keyframe_is_skipped(scene):
         det.remove(0)
     with pytest.raises(LoopError):
         det.add(scene[0])
+
+
+def test_footprint_is_computed_once_and_kept_after_remove(scene, monkeypatch):
+    det = _detector(scene, ids=(0, 1))
+    expected = footprints(scene[0].frame.height, scene[0].frame.contact, scene[0].frame.mm_per_px / 1000.0)[0]
+    det.remove(0)
+    calls = []
+    monkeypatch.setattr("tactile_slam.loop.detector.footprints", lambda *a: calls.append(1) or [None])
+    fp = det.footprint(scene[0])  # stored when added, still there after removal
+    torch.testing.assert_close(fp.centre, expected.centre)
+    assert fp.radius == pytest.approx(expected.radius) and calls == []
+    assert det.footprint(scene[3]) is None and det.footprint(scene[3]) is None and calls == [1]  # once per id
 
 
 def test_batch_verification_equals_per_pair(scene):
