@@ -3,6 +3,7 @@ alternative starts, and a second session joined through a predicted pair."""
 
 from __future__ import annotations
 
+import math
 from dataclasses import replace
 
 import pytest
@@ -72,6 +73,17 @@ def test_best_pair_none_when_apart_or_facing_away():
     assert best_pair(EYE, EYE[None], c, r, EYE[None], c, r, ~ok) is None
     empty = torch.zeros(0, 4, 4, dtype=torch.float64)
     assert best_pair(EYE, empty, c[:0], r[:0], EYE[None], c, r, torch.ones(0, 1, dtype=torch.bool)) is None
+
+
+def test_best_pair_skips_pairs_with_non_finite_poses_or_footprints():
+    c, r = torch.zeros(2, 3, dtype=torch.float64), torch.full((2,), 1.5e-3, dtype=torch.float64)
+    ok = torch.ones(2, 2, dtype=torch.bool)
+    bad = _line([0, 0]).clone()
+    bad[0, 0, 3] = math.nan  # H's first pose unknown: only its second keyframe can pair
+    assert best_pair(EYE, bad, c, r, _line([0, 3]), c, r, ok) == (1, 0)
+    nan_r = r.clone()
+    nan_r[:] = math.nan
+    assert best_pair(EYE, _line([0, 0]), c, nan_r, _line([0, 3]), c, r, ok) is None
 
 
 def test_best_pair_refuses_bad_shapes():
