@@ -43,7 +43,7 @@ import numpy as np
 import torch
 
 from tactile_slam.config import Config
-from tactile_slam.loop.ambiguity import elsewhere, starts
+from tactile_slam.loop.ambiguity import best, elsewhere, starts
 from tactile_slam.loop.consistency import DriftModel, LoopGate
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import Loop, LoopDetector
@@ -67,6 +67,7 @@ class BackEndStats:
     refined: int = 0  # loops re-measured (refinements that failed their checks keep the first value)
     refine_failed: int = 0
     ambiguous_loops: int = 0  # loops between groups whose pair also verified elsewhere (held as repetitive)
+    moved_loops: int = 0  # loops between groups moved to a better-scoring alignment nearby (with probes)
     probes: int = 0  # predicted pairs verified for loops waiting between groups
     probe_loops: int = 0  # of them, verified (they still pass the loop gate like any loop)
     probes_ambiguous: int = 0  # verified, but an alternative start verified elsewhere too
@@ -226,10 +227,12 @@ class BackEnd:
         return loops
 
     def _check_ambiguity(self, kf: Keyframe, loops: list[Loop]) -> list[Loop]:
-        """``loops`` of query ``kf`` with ``ambiguous`` set on those between two groups whose
+        """``loops`` of query ``kf``, those between two groups marked ``ambiguous`` when their
         pair also verifies from an alternative start at another pose
         (:mod:`tactile_slam.loop.ambiguity`, ``loop.check_ambiguity``); one NormalFlow batch
-        with the query as the shared reference."""
+        with the query as the shared reference. With probes on, such loops first move to
+        the best nearby alignment (:func:`~tactile_slam.loop.ambiguity.best`): a loop one
+        period off on ribs predicts probes one period off, which verify there."""
         fp = self.detector.footprint(kf)
         if (not self.config.loop.check_ambiguity or self.gate is None or self.detector.mode == "only_sift"
                 or fp is None or fp.radius <= 0.0):
@@ -238,17 +241,29 @@ class BackEnd:
         check = [i for i, lp in enumerate(loops) if not lp.repetitive and group_of(lp.ref_id) != group_of(kf.id)]
         if not check:
             return loops
-        inits = torch.cat([starts(se3.inverse(loops[i].ref_T_tar.double()), fp.centre, fp.radius) for i in check])
+        near = self._near_m() if self.config.loop.probes else None
+        inits = torch.cat([starts(se3.inverse(loops[i].ref_T_tar.double()), fp.centre, fp.radius, near) for i in check])
         S = len(inits) // len(check)
         res = self.detector.verify(kf, [self.keyframes[loops[i].ref_id] for i in check for _ in range(S)], inits)
-        flag = elsewhere(res.tar_T_ref.double().cpu().reshape(len(check), S, 4, 4), res.ok.cpu().reshape(len(check), S),
-                         self.gate.model).tolist()
+        q_T_c = res.tar_T_ref.double().cpu().reshape(len(check), S, 4, 4)
+        ok, ccs, scr = (x.cpu().reshape(len(check), S) for x in (res.ok, res.ccs, res.scr))
+        at = best(ok, ccs) if near is not None else torch.zeros(len(check), dtype=torch.long)
+        flag = elsewhere(q_T_c, ok, self.gate.model, at, near=False).tolist()
         out = list(loops)
-        for i, amb in zip(check, flag):
+        for j, (i, amb) in enumerate(zip(check, flag)):
+            b = int(at[j])
+            if b:
+                out[i] = replace(out[i], ref_T_tar=se3.inverse(q_T_c[j, b]), ccs=float(ccs[j, b]), scr=float(scr[j, b]))
+                self.stats.moved_loops += 1
             if amb:
-                out[i] = replace(loops[i], ambiguous=True)
+                out[i] = replace(out[i], ambiguous=True)
         self.stats.ambiguous_loops += sum(flag)
         return out
+
+    def _near_m(self) -> float:
+        """The near shift of :func:`~tactile_slam.loop.ambiguity.starts`: the gate's base
+        translation tolerance (metres)."""
+        return self.gate.model.base_trans_mm / 1000.0
 
     def _probe(self, loops: list[Loop]) -> list[Loop]:
         """Verified probes (``Loop.probe``) for the group pairs whose waiting loops (the
@@ -299,23 +314,27 @@ class BackEnd:
 
     def _probe_pair(self, x: int, y: int, H_T_G: torch.Tensor) -> Loop | None:
         """NormalFlow on ``(x, y)`` from the pose ``H_T_G`` predicts and from the alternatives
-        of :func:`~tactile_slam.loop.ambiguity.starts`: a loop when the prediction verifies
-        and no alternative verifies somewhere else (beyond the gate's base tolerance)."""
+        of :func:`~tactile_slam.loop.ambiguity.starts`: a loop at the best nearby alignment
+        when one verifies and no alternative verifies somewhere else (beyond the gate's base
+        tolerance)."""
         x_T_y = se3.inverse(self.graph.pose(x)) @ H_T_G @ self.graph.pose(y)
         # NormalFlow's reference is the smaller contact: SCR is the share of its samples
         # the other contact holds, which a smaller patch inside a larger one passes
         y_ref = self._footprint(y).radius <= self._footprint(x).radius
         q, c = (y, x) if y_ref else (x, y)
-        inits = starts(se3.inverse(x_T_y) if y_ref else x_T_y, self._footprint(q).centre, self._footprint(q).radius)
+        fq = self._footprint(q)
+        inits = starts(se3.inverse(x_T_y) if y_ref else x_T_y, fq.centre, fq.radius, self._near_m())
         res = self.detector.verify(self.keyframes[q], [self.keyframes[c]] * len(inits), inits)
-        q_T_c, ok = res.tar_T_ref.double().cpu(), res.ok.cpu()
-        if not bool(ok[0]):
+        q_T_c, ok, ccs = res.tar_T_ref.double().cpu(), res.ok.cpu(), res.ccs.cpu()
+        at = best(ok[None], ccs[None])
+        b = int(at[0])
+        if not bool(ok[b]):
             return None
-        if bool(elsewhere(q_T_c[None], ok[None], self.gate.model)):
+        if bool(elsewhere(q_T_c[None], ok[None], self.gate.model, at)):
             self.stats.probes_ambiguous += 1
             return None
-        x_T_y_meas = se3.inverse(q_T_c[0]) if y_ref else q_T_c[0]
-        return Loop(x, y, x_T_y_meas, float(res.ccs[0]), float(res.scr[0]), 0, se3.inverse(x_T_y), False, probe=True)
+        x_T_y_meas = se3.inverse(q_T_c[b]) if y_ref else q_T_c[b]
+        return Loop(x, y, x_T_y_meas, float(ccs[b]), float(res.scr[b]), 0, se3.inverse(x_T_y), False, probe=True)
 
     def _footprint(self, kf_id: int) -> Footprint | None:
         return self.detector.footprint(self.keyframes[kf_id])
@@ -352,6 +371,7 @@ class BackEnd:
             "refined_loops": st.refined,
             "refine_failed": st.refine_failed,
             "ambiguous_loops": st.ambiguous_loops,
+            "moved_loops": st.moved_loops,
             "probes": st.probes,
             "probe_loops": st.probe_loops,
             "probes_ambiguous": st.probes_ambiguous,

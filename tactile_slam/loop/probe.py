@@ -14,13 +14,15 @@ loop of another query keyframe, and the gate weighs it like one.
 
 A verification that would pass wherever it starts is no evidence, so the pair is also
 verified, in the same batch, from the alternatives of
-:func:`~tactile_slam.loop.ambiguity.starts`; the probe counts only if no alternative
-verifies at a different pose (:func:`~tactile_slam.loop.ambiguity.elsewhere`). That removes
-most confirmations on straight growth lines, not all: on a mirror-symmetric object a false
-loop is a true match of the surface, and probes verify the rest of it as well (6000-frame
-simulated scans with the ambiguity check on, docs/loops.md: the lime's largest group 56 ->
-87 of 234 keyframes with no false loop, the seed's 418 -> 433 with two loops 1.02 and 1.12
-deg off, the shell's false loops 1 -> 9). Hence off by default. Keyframes whose texture matches another part of
+:func:`~tactile_slam.loop.ambiguity.starts`, near ones included; the probe takes the best
+nearby alignment (:func:`~tactile_slam.loop.ambiguity.best`) and counts only if no other
+start verifies at a different pose (:func:`~tactile_slam.loop.ambiguity.elsewhere`). With
+probes on, loops between groups also take their best nearby alignment before they predict
+anything, so a loop one rib off does not send probes one rib off. That removes most
+confirmations on straight growth lines and ribs, not all (6000-frame simulated scans,
+docs/loops.md: the lime's largest group 56 -> 87 of 234 keyframes with no false loop, the
+seed's 418 -> 433 with two loops 1.02 and 1.12 deg off, the shell's false loops 1 -> 3).
+Hence off by default. Keyframes whose texture matches another part of
 itself (``Loop.repetitive``) are not probed, as their loops are not merged
 (``loop.trust_repetitive``).
 """

@@ -11,11 +11,14 @@ import torch
 
 from tactile_slam.backend import BackEnd
 from tactile_slam.config import Config
-from tactile_slam.loop.ambiguity import elsewhere, starts
+from tactile_slam.loop.ambiguity import NEAR, best, elsewhere, starts
 from tactile_slam.loop.consistency import DriftModel
+from tactile_slam.loop.detector import LoopDetector
 from tactile_slam.posegraph import se3
+from tactile_slam.registration.result import pose_error
+from tactile_slam.tracking.keyframe import Keyframe
 from tests.loop.test_probe import _sessions
-from tests.registration.surfaces import rigid, speckled, textured
+from tests.registration.surfaces import frames, rigid, speckled, textured
 
 EYE = torch.eye(4, dtype=torch.float64)
 MODEL = DriftModel(base_rot_deg=3.0, base_trans_mm=0.5, rot_deg_per_mm=0.1, trans_mm_per_mm=0.02, lever_mm=12.7)
@@ -24,25 +27,45 @@ MODEL = DriftModel(base_rot_deg=3.0, base_trans_mm=0.5, rot_deg_per_mm=0.1, tran
 def test_starts_are_the_prediction_its_shifts_and_turns_about_the_centre():
     q_T_c = rigid(rx_deg=2.0, rz_deg=10.0, tx_mm=0.4, ty_mm=-0.3)
     centre = torch.tensor([0.5e-3, -0.2e-3, -0.4e-3], dtype=torch.float64)
-    out = starts(q_T_c, centre, 2.0e-3)
-    assert out.shape == (8, 4, 4) and out.dtype == torch.float64
+    out = starts(q_T_c, centre, 2.0e-3, 0.5e-3)
+    assert out.shape == (12, 4, 4) and out.dtype == torch.float64
     torch.testing.assert_close(out[0], q_T_c)
     moves = out @ se3.inverse(q_T_c)  # what was applied on top of the prediction
-    torch.testing.assert_close(moves[1:5, :3, :3], EYE[:3, :3].expand(4, 3, 3))
-    torch.testing.assert_close(moves[1:5, :3, 3], torch.tensor([[1e-3, 0, 0], [-1e-3, 0, 0], [0, 1e-3, 0],
-                                                                [0, -1e-3, 0]], dtype=torch.float64))
+    axes = torch.tensor([[1.0, 0, 0], [-1.0, 0, 0], [0, 1.0, 0], [0, -1.0, 0]], dtype=torch.float64)
+    for shifts, size in ((slice(1, 5), 1e-3), (NEAR, 0.5e-3)):  # half the radius; the near shift
+        torch.testing.assert_close(moves[shifts, :3, :3], EYE[:3, :3].expand(4, 3, 3))
+        torch.testing.assert_close(moves[shifts, :3, 3], axes * size)
     for k, deg in zip(range(5, 8), (90.0, 180.0, 270.0)):
         angle = math.degrees(math.atan2(float(moves[k, 1, 0]), float(moves[k, 0, 0]))) % 360.0
         assert angle == pytest.approx(deg)
         torch.testing.assert_close(moves[k, :3, :3] @ centre + moves[k, :3, 3], centre)  # the centre stays
+    torch.testing.assert_close(starts(q_T_c, centre, 2.0e-3), out[:8])  # without near starts
 
 
 def test_starts_refuses_bad_input():
     with pytest.raises(ValueError, match="pose"):
-        starts(EYE[:3], torch.zeros(3, dtype=torch.float64), 1e-3)
+        starts(EYE[:3], torch.zeros(3, dtype=torch.float64), 1e-3, 0.5e-3)
     for bad in (0.0, -1e-3, math.nan):
         with pytest.raises(ValueError, match="radius"):
-            starts(EYE, torch.zeros(3, dtype=torch.float64), bad)
+            starts(EYE, torch.zeros(3, dtype=torch.float64), bad, 0.5e-3)
+        with pytest.raises(ValueError, match="near shift"):
+            starts(EYE, torch.zeros(3, dtype=torch.float64), 1e-3, bad)
+
+
+def test_best_takes_the_highest_verified_ccs_among_the_first_and_near_starts():
+    ccs = torch.full((4, 12), 0.9, dtype=torch.float64)
+    ok = torch.ones(4, 12, dtype=torch.bool)
+    ccs[0, 9] = 0.99  # a near start scores higher: taken
+    ccs[1, 5] = 0.99  # a far start scores higher: not a near alignment, left to elsewhere()
+    ccs[2, 10], ok[2, 10] = 0.99, False  # higher but failed its checks
+    ok[3, 0], ccs[3, 11] = False, 0.95  # the first start failed, a near one verified
+    assert best(ok, ccs).tolist() == [9, 0, 0, 11]
+    assert best(torch.zeros(2, 12, dtype=torch.bool), ccs[:2]).tolist() == [0, 0]  # nothing verified
+    nan = ccs[1:2].clone()  # all equal but a far start: the first
+    nan[0, 8] = math.nan
+    assert best(ok[:1], nan).tolist() == [0]
+    with pytest.raises(ValueError, match="S >= 12"):
+        best(ok[:, :8], ccs[:, :8])
 
 
 def test_elsewhere_needs_an_alternative_verified_beyond_the_base_tolerance():
@@ -57,6 +80,10 @@ def test_elsewhere_needs_an_alternative_verified_beyond_the_base_tolerance():
                        [False, False, False, False]])
     assert elsewhere(T, ok, MODEL).tolist() == [False, True, True, False]
     assert elsewhere(T, ok, MODEL.scaled(3.0)).tolist() == [False, False, True, False]  # 1 mm within 1.5 mm
+    # compared with another result: from the one 1 mm away, the first start is elsewhere
+    at = torch.tensor([0, 2, 0, 0])
+    assert elsewhere(T, ok, MODEL, at).tolist() == [False, True, True, False]
+    assert elsewhere(T[1:2, 1:], ok[1:2, 1:], MODEL, torch.tensor([1])).tolist() == [False]  # alone
     with pytest.raises(ValueError, match="S, 4, 4"):
         elsewhere(T[:, :3], ok, MODEL)
 
@@ -81,6 +108,7 @@ def test_loop_between_groups_on_a_texture_that_verifies_elsewhere_is_held():
     assert trusted.stats.ambiguous_loops == 1 and [p.b_id for p in trusted.gate.pending] == [2]
     assert trusted.gate.pending[0].loop.ambiguous and trusted.gate.pending[0].loop.to_dict()["ambiguous"] is True
     assert checked.summary()["ambiguous_loops"] == 1
+    assert checked.stats.moved_loops == 0  # without probes the loop keeps its measurement
 
 
 def test_loop_between_groups_on_random_bumps_is_not_held():
@@ -100,3 +128,22 @@ def test_ambiguous_loops_are_not_probed():
         be.add(k, detect=k.id != 2)
     assert be.detector.stats.loops >= 1 and be.stats.ambiguous_loops == be.detector.stats.loops
     assert be.stats.probes == 0 and be.group[3] != be.group[0]
+
+
+def test_best_finds_the_alignment_one_rib_over_that_a_start_one_period_off_misses():
+    """Ribs 0.45 mm apart on random bumps: NormalFlow started one period off converges there
+    and verifies (the bumps disagree, so with a lower CCS); a near start reaches the truth,
+    which scores higher, and :func:`best` takes it."""
+    lam = 0.45e-3
+    view = rigid(rz_deg=4.0, tx_mm=0.3, ty_mm=-0.2)  # keyframe 0's coordinates into keyframe 1's
+    f = frames(replace(speckled(0), waves=[(30e-6, lam, 0.0, 0.0)]), [EYE, view])
+    q, c = Keyframe(1, 1, f[1], True, EYE), Keyframe(0, 0, f[0], True, EYE)
+    det = LoopDetector(Config())
+    fp = det.footprint(q)
+    for off_mm in (lam * 1e3, -lam * 1e3):
+        res = det.verify(q, [c] * 12, starts(rigid(tx_mm=off_mm) @ view, fp.centre, fp.radius, 0.5e-3))
+        rot, trans = pose_error(res.tar_T_ref.double(), view.expand(12, 4, 4))
+        assert bool(res.ok[0]) and float(trans[0]) > 0.3  # verified one rib off
+        b = int(best(res.ok[None], res.ccs[None])[0])
+        assert b in range(NEAR.start, NEAR.stop) and float(res.ccs[b]) > float(res.ccs[0])
+        assert float(rot[b]) < 0.05 and float(trans[b]) < 0.01
