@@ -194,6 +194,16 @@ class TrackingConfig:
     # previous frame, which accepts real fast motion at the cost of a keyframe; None disables
     max_deg_per_s: float | None = 125.0  # 5 deg per frame at 25 fps
     max_mm_per_s: float | None = 25.0  # 1 mm per frame at 25 fps
+    # keyframe edges (docs/benchmarks.md, "Keyframe edges"): a new keyframe's pose in the
+    # previous one is registered again from starts shifted this far along +-x and +-y, and
+    # a start whose result verifies with a CCS higher by more than keyframe_near_margin,
+    # within keyframe_near_max_deg / _mm of the tracked pose (one frame's motion limit at
+    # 25 fps), replaces it (on ribs a step of about a period slips to the neighbouring
+    # rib); None disables
+    keyframe_near_mm: float | None = 0.5
+    keyframe_near_margin: float = 0.01
+    keyframe_near_max_deg: float = 5.0
+    keyframe_near_max_mm: float = 1.0
 
 
 @dataclass

@@ -79,6 +79,13 @@ class RunResult:
     stats: dict = field(default_factory=dict)
 
 
+def tracker_counts(tracker) -> dict:
+    """The tracker's counters for ``stats.json`` (0 for trackers without them, e.g. the
+    frame-to-frame baselines)."""
+    return {"implausible_motions": getattr(tracker, "implausible", 0),
+            "moved_keyframe_edges": getattr(tracker, "moved_edges", 0)}
+
+
 class OfflinePipeline:
     """Args:
         source: frames (a recording or a stream).
@@ -198,7 +205,7 @@ class OfflinePipeline:
         wall = time.perf_counter() - t_start
         backend.finish()
         result = self._write(indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, t_back, wall, error,
-                             getattr(tracker, "implausible", 0))
+                             tracker_counts(tracker))
         self.visualizer.close()
         if error is not None and not isinstance(error, KeyboardInterrupt):
             raise error
@@ -212,7 +219,7 @@ class OfflinePipeline:
 
     # ------------------------------------------------------------------ outputs
     def _write(self, indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, t_back, wall, error,
-               implausible: int) -> RunResult:
+               counts: dict) -> RunResult:
         out = self.out_dir
         n = len(indices)
         contact_frames = sum(1 for k in kf_of if k >= 0)
@@ -250,7 +257,7 @@ class OfflinePipeline:
             "keyframes": len(keyframes),
             "sessions": len({k.session for k in keyframes}),
             "groups": len(set(group_of_kf.values())),
-            "implausible_motions": implausible,
+            **counts,
             "fps": n / wall if wall > 0 else float("nan"),
             "wall_time_s": wall,
             "timing_ms": {"geometry": med(t_geom), "tracking": med(t_track),

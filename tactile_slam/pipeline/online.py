@@ -52,7 +52,7 @@ from tactile_slam.geometry.frame import Frame, InputError
 from tactile_slam.io.dataset import collate
 from tactile_slam.io.frames import FrameSource
 from tactile_slam.io.replay import RealtimeFeed
-from tactile_slam.pipeline.offline import LOOP_MODES, OfflinePipeline, RunOptions, RunResult
+from tactile_slam.pipeline.offline import LOOP_MODES, OfflinePipeline, RunOptions, RunResult, tracker_counts
 from tactile_slam.pipeline.outputs import write_json
 from tactile_slam.pipeline.stream import PoseEvent, PoseStream
 from tactile_slam.pipeline.visualizer import NullVisualizer
@@ -581,7 +581,7 @@ class OnlinePipeline(OfflinePipeline):
         if error is not None and not indices:
             raise error
         result = self._write(indices, kf_of, kf_T, keyframes, kmap, t_geom, t_track, state["step_s"], wall, error,
-                             getattr(tracker, "implausible", 0))
+                             tracker_counts(tracker))
         result.stats.update(final_stats)
         result.stats.update(self._online_stats(feed, latency, keyframes, state, stopped_by))
         result.stats["completed"] = stopped_by == "end_of_stream"

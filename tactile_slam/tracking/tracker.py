@@ -8,6 +8,14 @@ texture NormalFlow can converge to a wrong alignment that the scores cannot tell
 and the lazy rule's retry from the previous frame recovers; a legitimately fast motion is
 accepted by that retry and only costs a keyframe (docs/benchmarks.md).
 
+A new keyframe's pose in the previous keyframe (the odometry edge of the pose graph) is
+registered again, in one batch, from starts shifted by ``tracking.keyframe_near_mm`` along
++-x and +-y; a verified result whose CCS beats the tracked one by more than
+``tracking.keyframe_near_margin``, within one frame's motion limit of it
+(``keyframe_near_max_deg``, ``keyframe_near_max_mm``), replaces it. On ribs about as far apart as a frame's step,
+tracking slips to the neighbouring rib and verifies there, with a lower CCS than at the
+truth (docs/benchmarks.md, "Keyframe edges").
+
 A pure algorithm object: state plus :meth:`Tracker.step`. It never reads files or
 times itself; the pipeline does that.
 """
@@ -106,10 +114,14 @@ class Tracker:
     def __init__(self, config: TrackingConfig, registrar: Registrar):
         if config.init not in INIT_MODES:
             raise ValueError(f"tracking.init must be one of {INIT_MODES}, got {config.init!r}")
-        for name in ("max_deg_per_s", "max_mm_per_s"):
+        for name in ("max_deg_per_s", "max_mm_per_s", "keyframe_near_mm"):
             v = getattr(config, name)
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise ValueError(f"tracking.{name} must be a positive number or None, got {v!r}")
+        for name in ("keyframe_near_margin", "keyframe_near_max_deg", "keyframe_near_max_mm"):
+            v = getattr(config, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"tracking.{name} must be a finite number >= 0, got {v!r}")
         self.config = config
         self.registrar = registrar
         self.next_keyframe_id = 0
@@ -122,9 +134,12 @@ class Tracker:
         self.prev_is_keyframe = False
         self.prev_in_contact = False
         self.implausible = 0  # registrations refused by the motion-continuity check
+        self.moved_edges = 0  # keyframe edges replaced by a better-scoring nearby alignment
 
     # ----------------------------------------------------------------- helpers
     def _make_keyframe(self, frame: Frame, new_session: bool, prev_T_kf: torch.Tensor) -> Keyframe:
+        if not new_session and self.config.keyframe_near_mm is not None:
+            prev_T_kf = self._best_nearby(frame, prev_T_kf)
         if new_session:
             self.next_session += 1
         session = self.next_session - 1
@@ -133,6 +148,28 @@ class Tracker:
         self.kf = kf
         self.kf_prepared = self.registrar.prepare(frame)
         return kf
+
+    def _best_nearby(self, frame: Frame, prev_T_kf: torch.Tensor) -> torch.Tensor:
+        """``frame``'s pose in the current keyframe, registered again from ``prev_T_kf`` and
+        from it shifted by ``keyframe_near_mm`` along +-x and +-y (one batch against the
+        prepared keyframe): the verified result with the highest CCS within
+        ``keyframe_near_max_deg`` / ``_mm`` of the first start's, where it beats that one by
+        more than ``keyframe_near_margin``; else ``prev_T_kf``."""
+        c = self.config
+        moves = _eye().repeat(5, 1, 1)
+        axes = torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], dtype=torch.float64)
+        moves[1:, :2, 3] = axes * (c.keyframe_near_mm / 1000.0)
+        res = self.registrar.register(self.kf_prepared, Frame.cat([frame] * 5), moves @ torch.linalg.inv(prev_T_kf))
+        T = res.tar_T_ref.to(torch.float64).cpu()
+        rot, trans = pose_error(T, T[:1].expand(5, 4, 4))
+        near = (rot <= c.keyframe_near_max_deg) & (trans <= c.keyframe_near_max_mm)
+        score = torch.where(res.ok.cpu() & near, res.ccs.double().cpu().nan_to_num(-math.inf), -math.inf)
+        score[0] += c.keyframe_near_margin
+        k = int(score.argmax())
+        if k == 0 or not math.isfinite(float(score[k])):
+            return prev_T_kf
+        self.moved_edges += 1
+        return torch.linalg.inv(T[k])
 
     def _init_guess(self) -> torch.Tensor:
         """Initial tar_T_ref = inv(predicted kf_T_frame)."""
@@ -177,7 +214,7 @@ class Tracker:
             return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf], is_keyframe=True))
         # lazy keyframe rule: the previous frame becomes a keyframe, then retry
         prev_kf = self._make_keyframe(self.prev, False, self.kf_T_prev)
-        old_kf_T_prev = self.kf_T_prev
+        old_kf_T_prev = prev_kf.prev_T_kf
         self.kf_T_prevprev = (
             torch.linalg.inv(old_kf_T_prev) @ self.kf_T_prevprev if self.kf_T_prevprev is not None else None
         )

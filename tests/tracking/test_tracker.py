@@ -48,15 +48,18 @@ class ScriptedRegistrar:
         return int(ref.index[0])
 
     def register(self, ref_index, tar: Frame, init):
-        tar_index = int(tar.index[0])
-        self.calls.append((ref_index, tar_index, init[0].clone()))
+        """Every target is the same frame here; a batch (the keyframe-edge check) gets the
+        same answer for each start and is not logged in ``calls``."""
+        tar_index, b = int(tar.index[0]), len(tar)
+        if b == 1:
+            self.calls.append((ref_index, tar_index, init[0].clone()))
         ok = not self.fails(ref_index, tar_index)
         t = torch.linalg.inv(pose(tar_index)) @ pose(ref_index)
         if self.slip is not None and self.slip(ref_index, tar_index) is not None:
             t = self.slip(ref_index, tar_index) @ t
-        one = lambda v, dt=torch.float64: torch.tensor([v], dtype=dt)  # noqa: E731
-        return RegistrationResult(t[None], one(0.9 if ok else 0.1), one(0.9), one(100, torch.int64),
-                                  one(7, torch.int64), one(True, torch.bool), one(ok, torch.bool))
+        full = lambda v, dt=torch.float64: torch.full((b,), v, dtype=dt)  # noqa: E731
+        return RegistrationResult(t.expand(b, 4, 4).clone(), full(0.9 if ok else 0.1), full(0.9), full(100, torch.int64),
+                                  full(7, torch.int64), full(True, torch.bool), full(ok, torch.bool))
 
 
 def run(contacts, fails=lambda r, t: False, slip=None, fps=25.0, **cfg):
@@ -206,3 +209,59 @@ def test_bad_config_and_batch():
     tr = Tracker(TrackingConfig(), ScriptedRegistrar(lambda r, t: False))
     with pytest.raises(ValueError, match="one frame"):
         tr.step(Frame.cat([frame(0), frame(1)]))
+
+
+class RibRegistrar(ScriptedRegistrar):
+    """Every registration slips by ``slip`` (a rib over) with CCS 0.9, except the
+    keyframe-edge batch's start ``right``, which finds the truth (moved by ``off``) with CCS
+    ``right_ccs``."""
+
+    def __init__(self, slip: torch.Tensor, right: int, right_ccs: float, off: torch.Tensor | None = None):
+        super().__init__(lambda r, t: False, lambda r, t: slip)
+        self.right, self.right_ccs = right, right_ccs
+        self.off = torch.eye(4, dtype=torch.float64) if off is None else off
+
+    def register(self, ref_index, tar: Frame, init):
+        res = super().register(ref_index, tar, init)
+        if len(tar) == 5:
+            truth = torch.linalg.inv(pose(int(tar.index[0]))) @ pose(ref_index)
+            res.tar_T_ref[self.right] = self.off @ truth
+            res.ccs[self.right] = self.right_ccs
+        return res
+
+
+def _rib(mm: float = 0.45) -> torch.Tensor:
+    slip = torch.eye(4, dtype=torch.float64)
+    slip[0, 3] = mm * 1e-3
+    return slip
+
+
+@pytest.mark.parametrize("off_mm, right_ccs, moved", [(0.0, 0.95, True), (0.0, 0.905, False), (-2.0, 0.95, False)])
+def test_keyframe_edge_takes_a_nearby_start_that_scores_higher(off_mm, right_ccs, moved):
+    """Frame 3 fails against keyframe 0, so frame 2 becomes a keyframe; its tracked pose
+    slipped a rib. A shifted start that verifies with a CCS higher by more than the margin
+    (0.01) gives the keyframe edge; within the margin, or beyond one frame's motion (1 mm)
+    from the tracked pose (2.45 mm here), the tracked pose stays."""
+    reg = RibRegistrar(_rib(), right=3, right_ccs=right_ccs, off=_rib(off_mm))
+    reg.fails = lambda r, t: (r, t) == (0, 3)
+    tr = Tracker(TrackingConfig(), reg)
+    kfs = [k for i in range(5) for k in tr.step(frame(i)).keyframes]
+    edge = kfs[1].prev_T_kf
+    truth = torch.linalg.inv(pose(0)) @ pose(2)
+    slipped = torch.linalg.inv(_rib() @ torch.linalg.inv(pose(2)) @ pose(0))
+    torch.testing.assert_close(edge, truth if moved else slipped)
+    assert tr.moved_edges == int(moved)
+
+
+def test_keyframe_edge_check_off_and_bad_settings():
+    reg = RibRegistrar(_rib(), right=1, right_ccs=0.99)
+    reg.fails = lambda r, t: (r, t) == (0, 3)
+    tr = Tracker(TrackingConfig(keyframe_near_mm=None), reg)
+    kfs = [k for i in range(5) for k in tr.step(frame(i)).keyframes]
+    torch.testing.assert_close(kfs[1].prev_T_kf, torch.linalg.inv(_rib() @ torch.linalg.inv(pose(2)) @ pose(0)))
+    assert tr.moved_edges == 0
+    for bad in ({"keyframe_near_mm": 0.0}, {"keyframe_near_mm": math.nan}, {"keyframe_near_margin": -0.1},
+                {"keyframe_near_margin": math.inf}, {"keyframe_near_max_deg": math.nan},
+                {"keyframe_near_max_mm": -1.0}):
+        with pytest.raises(ValueError, match="keyframe_near"):
+            Tracker(TrackingConfig(**bad), reg)
