@@ -275,8 +275,9 @@ class BackEnd:
             return []
         group_of, trust = self.sessions.group_of, self.config.loop.trust_repetitive
         waiting: dict[frozenset, list[tuple[int, int, torch.Tensor]]] = {}
-        for a, b, a_T_b, rep in ([(p.a_id, p.b_id, p.a_T_b, p.repetitive) for p in self.gate.pending]
-                                 + [(lp.ref_id, lp.tar_id, lp.ref_T_tar, not (lp.says_where or trust)) for lp in loops]):
+        held = [(p.a_id, p.b_id, p.a_T_b, p.repetitive) for p in self.gate.pending]
+        new = [(lp.ref_id, lp.tar_id, lp.ref_T_tar, not (lp.says_where or trust)) for lp in loops]
+        for a, b, a_T_b, rep in held + new:
             key = frozenset((group_of(a), group_of(b)))
             if len(key) == 2 and not rep:
                 waiting.setdefault(key, []).append((a, b, a_T_b))
