@@ -33,6 +33,7 @@ import math
 import torch
 
 from tactile_slam.loop.consistency import DriftModel, consistent
+from tactile_slam.posegraph import se3
 
 
 NEAR = slice(8, 12)
@@ -62,17 +63,14 @@ def starts(q_T_c: torch.Tensor, centre: torch.Tensor, radius_m: float, near_m: f
         raise ValueError(f"radius must be finite and positive, got {radius_m}")
     if near_m is not None and not (math.isfinite(near_m) and near_m > 0.0):
         raise ValueError(f"near shift must be finite and positive, got {near_m}")
-    moves = torch.eye(4, dtype=torch.float64).repeat(7 if near_m is None else 11, 1, 1)
-    axes = torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], dtype=torch.float64)
-    moves[:4, :2, 3] = axes * (radius_m / 2.0)
-    if near_m is not None:
-        moves[7:, :2, 3] = axes * near_m
+    turns = torch.eye(4, dtype=torch.float64).repeat(3, 1, 1)
     a = torch.deg2rad(torch.tensor([90.0, 180.0, 270.0], dtype=torch.float64))
-    R = moves[4:7, :3, :3]
+    R = turns[:, :3, :3]
     R[:, 0, 0], R[:, 0, 1], R[:, 1, 0], R[:, 1, 1] = a.cos(), -a.sin(), a.sin(), a.cos()
     c = centre.double()
-    moves[4:7, :3, 3] = c - R @ c  # rotation about c: x -> R (x - c) + c
-    return torch.cat([q_T_c.double()[None], moves @ q_T_c.double()])
+    turns[:, :3, 3] = c - R @ c  # rotation about c: x -> R (x - c) + c
+    moves = [se3.shifts_xy(radius_m / 2.0), turns] + ([] if near_m is None else [se3.shifts_xy(near_m)])
+    return torch.cat([q_T_c.double()[None], torch.cat(moves) @ q_T_c.double()])
 
 
 def best(ok: torch.Tensor, ccs: torch.Tensor) -> torch.Tensor:

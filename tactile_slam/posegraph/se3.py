@@ -78,6 +78,14 @@ def inverse(T: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.cat([Rt, -(Rt @ T[..., :3, 3:])], -1), T[..., 3:, :]], -2)
 
 
+def shifts_xy(distance_m: float) -> torch.Tensor:
+    """Translations by ``distance_m`` along +x, -x, +y and -y: ``(4, 4, 4)`` float64 (the
+    nearby starts of the tracker's keyframe check and of the loop ambiguity check)."""
+    T = torch.eye(4, dtype=torch.float64).repeat(4, 1, 1)
+    T[:, :2, 3] = torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], dtype=torch.float64) * distance_m
+    return T
+
+
 def exp(xi: torch.Tensor) -> torch.Tensor:
     """``Exp`` of se3 vectors ``(..., 6)`` [rho, phi] as matrices ``(..., 4, 4)``."""
     rho, phi = xi[..., :3], xi[..., 3:]

@@ -12,9 +12,9 @@ A new keyframe's pose in the previous keyframe (the odometry edge of the pose gr
 registered again, in one batch, from starts shifted by ``tracking.keyframe_near_mm`` along
 +-x and +-y; a verified result whose CCS beats the tracked one by more than
 ``tracking.keyframe_near_margin``, within one frame's motion limit of it
-(``keyframe_near_max_deg``, ``keyframe_near_max_mm``), replaces it. On ribs about as far apart as a frame's step,
-tracking slips to the neighbouring rib and verifies there, with a lower CCS than at the
-truth (docs/benchmarks.md, "Keyframe edges").
+(``keyframe_near_max_deg``, ``keyframe_near_max_mm``), replaces it. On ribs about as far
+apart as a frame's step, tracking slips to the neighbouring rib and verifies there, with a
+lower CCS than at the truth (docs/benchmarks.md, "Keyframe edges").
 
 A pure algorithm object: state plus :meth:`Tracker.step`. It never reads files or
 times itself; the pipeline does that.
@@ -30,6 +30,7 @@ import torch
 
 from tactile_slam.config import NormalFlowConfig, TrackingConfig
 from tactile_slam.geometry.frame import Frame
+from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import prepare_reference, register_prepared
 from tactile_slam.registration.result import RegistrationResult, pose_error
 from tactile_slam.tracking.keyframe import Keyframe
@@ -156,9 +157,7 @@ class Tracker:
         ``keyframe_near_max_deg`` / ``_mm`` of the first start's, where it beats that one by
         more than ``keyframe_near_margin``; else ``prev_T_kf``."""
         c = self.config
-        moves = _eye().repeat(5, 1, 1)
-        axes = torch.tensor([[1.0, 0.0], [-1.0, 0.0], [0.0, 1.0], [0.0, -1.0]], dtype=torch.float64)
-        moves[1:, :2, 3] = axes * (c.keyframe_near_mm / 1000.0)
+        moves = torch.cat([_eye()[None], se3.shifts_xy(c.keyframe_near_mm / 1000.0)])
         res = self.registrar.register(self.kf_prepared, Frame.cat([frame] * 5), moves @ torch.linalg.inv(prev_T_kf))
         T = res.tar_T_ref.to(torch.float64).cpu()
         rot, trans = pose_error(T, T[:1].expand(5, 4, 4))

@@ -129,3 +129,12 @@ class TestCheckPose:
         T = _random_poses(3, torch.float32, "cpu")
         out = se3.check_pose(T)
         assert out.dtype == torch.float64 and out.shape == (3, 4, 4)
+
+
+def test_shifts_xy_are_pure_translations_along_the_four_axis_directions():
+    T = se3.shifts_xy(0.5e-3)
+    assert T.shape == (4, 4, 4) and T.dtype == torch.float64
+    torch.testing.assert_close(T[:, :3, :3], torch.eye(3, dtype=torch.float64).expand(4, 3, 3))
+    torch.testing.assert_close(T[:, :3, 3], torch.tensor([[0.5e-3, 0, 0], [-0.5e-3, 0, 0], [0, 0.5e-3, 0],
+                                                          [0, -0.5e-3, 0]], dtype=torch.float64))
+    torch.testing.assert_close(T[:, 3], torch.tensor([0, 0, 0, 1.0], dtype=torch.float64).expand(4, 4))
