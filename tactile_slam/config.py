@@ -204,6 +204,9 @@ class TrackingConfig:
     keyframe_near_margin: float = 0.01
     keyframe_near_max_deg: float = 5.0
     keyframe_near_max_mm: float = 1.0
+    # while a round moves the edge, search again from the new best (a slip of two ribs),
+    # at most this many batches of 5 per keyframe
+    keyframe_near_rounds: int = 3
 
 
 @dataclass

@@ -12,9 +12,10 @@ A new keyframe's pose in the previous keyframe (the odometry edge of the pose gr
 registered again, in one batch, from starts shifted by ``tracking.keyframe_near_mm`` along
 +-x and +-y; a verified result whose CCS beats the tracked one by more than
 ``tracking.keyframe_near_margin``, within one frame's motion limit of it
-(``keyframe_near_max_deg``, ``keyframe_near_max_mm``), replaces it. On ribs about as far
-apart as a frame's step, tracking slips to the neighbouring rib and verifies there, with a
-lower CCS than at the truth (docs/benchmarks.md, "Keyframe edges").
+(``keyframe_near_max_deg``, ``keyframe_near_max_mm``), replaces it, and the search repeats
+from there (``keyframe_near_rounds`` batches at most). On ribs about as far apart as a
+frame's step, tracking slips to the neighbouring rib (or the next) and verifies there,
+with a lower CCS than at the truth (docs/benchmarks.md, "Keyframe edges").
 
 A pure algorithm object: state plus :meth:`Tracker.step`. It never reads files or
 times itself; the pipeline does that.
@@ -123,6 +124,9 @@ class Tracker:
             v = getattr(config, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"tracking.{name} must be a finite number >= 0, got {v!r}")
+        if isinstance(config.keyframe_near_rounds, bool) or not isinstance(config.keyframe_near_rounds, int) \
+                or config.keyframe_near_rounds < 1:
+            raise ValueError(f"tracking.keyframe_near_rounds must be an integer >= 1, got {config.keyframe_near_rounds!r}")
         self.config = config
         self.registrar = registrar
         self.next_keyframe_id = 0
@@ -155,20 +159,32 @@ class Tracker:
         from it shifted by ``keyframe_near_mm`` along +-x and +-y (one batch against the
         prepared keyframe): the verified result with the highest CCS within
         ``keyframe_near_max_deg`` / ``_mm`` of the first start's, where it beats that one by
-        more than ``keyframe_near_margin``; else ``prev_T_kf``."""
+        more than ``keyframe_near_margin``. While that moves the pose, the search repeats
+        from the new best (up to ``keyframe_near_rounds`` batches), each round's best having
+        to beat the last by the margin, the limit still counted from the first start's
+        result: a slip of two ribs needs two steps. Returns ``prev_T_kf`` if nothing beat it."""
         c = self.config
         moves = torch.cat([_eye()[None], se3.shifts_xy(c.keyframe_near_mm / 1000.0)])
-        res = self.registrar.register(self.kf_prepared, Frame.cat([frame] * 5), moves @ torch.linalg.inv(prev_T_kf))
-        T = res.tar_T_ref.to(torch.float64).cpu()
-        rot, trans = pose_error(T, T[:1].expand(5, 4, 4))
-        near = (rot <= c.keyframe_near_max_deg) & (trans <= c.keyframe_near_max_mm)
-        score = torch.where(res.ok.cpu() & near, res.ccs.double().cpu().nan_to_num(-math.inf), -math.inf)
-        score[0] += c.keyframe_near_margin
-        k = int(score.argmax())
-        if k == 0 or not math.isfinite(float(score[k])):
+        start, first, best_ccs, moved = torch.linalg.inv(prev_T_kf), None, None, False
+        for _ in range(c.keyframe_near_rounds):
+            res = self.registrar.register(self.kf_prepared, Frame.cat([frame] * 5), moves @ start)
+            T = res.tar_T_ref.to(torch.float64).cpu()
+            if first is None:
+                first = T[:1]
+            rot, trans = pose_error(T, first.expand(5, 4, 4))
+            near = (rot <= c.keyframe_near_max_deg) & (trans <= c.keyframe_near_max_mm)
+            score = torch.where(res.ok.cpu() & near, res.ccs.double().cpu().nan_to_num(-math.inf), -math.inf)
+            if best_ccs is None:  # first round: the re-registered tracked pose is the one to beat
+                best_ccs = float(score[0])
+            score[0] = best_ccs + c.keyframe_near_margin
+            k = int(score.argmax())
+            if k == 0 or not math.isfinite(float(score[k])):
+                break
+            start, best_ccs, moved = T[k], float(score[k]), True
+        if not moved:
             return prev_T_kf
         self.moved_edges += 1
-        return torch.linalg.inv(T[k])
+        return torch.linalg.inv(start)
 
     def _init_guess(self) -> torch.Tensor:
         """Initial tar_T_ref = inv(predicted kf_T_frame)."""

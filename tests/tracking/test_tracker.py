@@ -262,6 +262,43 @@ def test_keyframe_edge_check_off_and_bad_settings():
     assert tr.moved_edges == 0
     for bad in ({"keyframe_near_mm": 0.0}, {"keyframe_near_mm": math.nan}, {"keyframe_near_margin": -0.1},
                 {"keyframe_near_margin": math.inf}, {"keyframe_near_max_deg": math.nan},
-                {"keyframe_near_max_mm": -1.0}):
+                {"keyframe_near_max_mm": -1.0}, {"keyframe_near_rounds": 0}, {"keyframe_near_rounds": 1.5},
+                {"keyframe_near_rounds": True}):
         with pytest.raises(ValueError, match="keyframe_near"):
             Tracker(TrackingConfig(**bad), reg)
+
+
+class LatticeRegistrar(ScriptedRegistrar):
+    """Ribs 0.45 mm apart along x: tracking (``B = 1``) slips ``ribs`` ribs; a start of the
+    keyframe-edge batch converges to the rib nearest to it, with CCS 0.99 at the truth and
+    0.04 less per rib away. Counts the batches."""
+
+    def __init__(self, ribs: int):
+        super().__init__(lambda r, t: (r, t) == (0, 3), lambda r, t: _rib(0.45 * ribs))
+        self.batches = 0
+
+    def register(self, ref_index, tar: Frame, init):
+        res = super().register(ref_index, tar, init)
+        if len(tar) == 5:
+            self.batches += 1
+            truth = torch.linalg.inv(pose(int(tar.index[0]))) @ pose(ref_index)
+            k = torch.round((init.double() @ torch.linalg.inv(truth))[:, 0, 3] / 0.45e-3)
+            for b in range(5):
+                res.tar_T_ref[b] = _rib(0.45 * float(k[b])) @ truth
+            res.ccs[:] = (0.99 - 0.04 * k.abs()).to(res.ccs.dtype)
+        return res
+
+
+@pytest.mark.parametrize("ribs, rounds, left, batches", [(2, 3, 0, 3), (2, 1, 1, 1), (3, 3, 1, 3), (1, 3, 0, 2)])
+def test_keyframe_edge_search_repeats_from_the_new_best(ribs, rounds, left, batches):
+    """A slip of two ribs needs two rounds (each start is 0.5 mm away, and converges to the
+    nearest rib); a third round stops when nothing beats the truth. The motion limit (1 mm)
+    counts from the tracked pose's result, so a slip of three ribs (1.35 mm) ends one rib
+    short. Within ``keyframe_near_rounds`` batches."""
+    reg = LatticeRegistrar(ribs)
+    tr = Tracker(TrackingConfig(keyframe_near_rounds=rounds), reg)
+    kfs = [k for i in range(5) for k in tr.step(frame(i)).keyframes]
+    truth = torch.linalg.inv(pose(2)) @ pose(0)  # tar_T_ref of the edge
+    torch.testing.assert_close(kfs[1].prev_T_kf, torch.linalg.inv(_rib(0.45 * left) @ truth))
+    assert tr.moved_edges == 1
+    assert reg.batches == batches
