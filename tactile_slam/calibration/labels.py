@@ -11,7 +11,11 @@ Detection (no model needed, no thresholds tuned to one data set):
    colour change) grows up to the rim and decays outside it;
 3. a circle is fitted to the per-ray peaks (algebraic fit, trimmed of outliers); rays
    that leave the image before their peak are dropped, so presses cut by the border keep
-   an unbiased centre; steps 2-3 repeat from the new centre.
+   an unbiased centre; steps 2-3 repeat from the new centre until the circle settles;
+4. steps 2-3 run from several starts (the centroid and points around it), because a
+   colour feature inside the contact can hold a fit that starts near it; the contact rim
+   encloses every such feature, so the **largest** circle that passes every check below
+   is the label.
 
 A label is flagged unreliable (kept in the file, never trained on) when too little of
 its rim is visible, the rim is not circular, or it contradicts the ball geometry: a
@@ -29,6 +33,7 @@ import csv
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -68,18 +73,31 @@ class DetectionConfig:
     """Detector settings; all but the geometry are dimensionless or relative.
 
     ``noise_sigmas``: changed-pixel threshold in robust noise standard deviations.
-    ``n_rays``: rays cast from the centre. ``min_visible``: least fraction of the rim
-    inside the image for a reliable label. ``max_residual_px``: largest median distance
-    of rim points to the fitted circle. ``min_radius_px``: smallest reliable radius.
+    ``n_rays``: rays cast from the centre. ``iterations``: most ray-and-fit rounds per
+    start. ``starts``: fits started from the changed region's centroid and ``starts - 1``
+    points on a circle of half the region's equivalent radius around it. ``settle_px``:
+    a fit has settled when its circle (centre shift plus radius change) moves less than
+    this in a round. ``min_visible``: least fraction of the rim inside the image for a
+    reliable label. ``max_residual_px``: largest median distance of rim points to the
+    fitted circle. ``min_radius_px``: smallest reliable radius.
     """
 
     noise_sigmas: float = 8.0
     blur_sigma: float = 1.0
     n_rays: int = 180
-    iterations: int = 4
+    iterations: int = 12
+    starts: int = 9
+    settle_px: float = 0.5
     min_visible: float = 0.6
     max_residual_px: float = 3.0
     min_radius_px: float = 8.0
+
+    def __post_init__(self) -> None:
+        for name, least in (("iterations", 1), ("starts", 1), ("n_rays", 8)):
+            if getattr(self, name) < least:
+                raise ValueError(f"DetectionConfig.{name} must be >= {least}, got {getattr(self, name)}")
+        if not self.settle_px > 0:
+            raise ValueError(f"DetectionConfig.settle_px must be > 0, got {self.settle_px}")
 
 
 def _fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
@@ -161,11 +179,57 @@ def detect_contact_circle(
     ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
     cx, cy = float((wgt * xs).sum() / wgt.sum()), float((wgt * ys).sum() / wgt.sum())
 
+    ring = 0.5 * math.sqrt(float(region.sum()) / math.pi)
+    turns = np.linspace(0.0, 2.0 * math.pi, max(cfg.starts - 1, 0), endpoint=False)
+    starts = [(cx, cy)] + [(cx + ring * math.cos(a), cy + ring * math.sin(a)) for a in turns]
+    fits = [_rim_fit(dist, threshold, sx, sy, ball_radius_px, cfg) for sx, sy in starts]
+    if not any(math.isfinite(f.radius) for f in fits):
+        raise NoContactError(
+            f"press {reldir or '?'}: no contact rim found (only {fits[0].visible:.0%} of rays peak inside the image)"
+        )
+    checked = [(f, _label_problems(f, ball_radius_px, max_indentation_px, cfg)) for f in fits if math.isfinite(f.radius)]
+    passing = [f for f, problems in checked if not problems]
+    if passing:
+        best = max(passing, key=lambda f: f.radius)
+        return PressLabel(reldir, best.cx, best.cy, best.radius, True, "", "auto", best.visible, best.residual)
+    best, problems = checked[0]  # nothing passes: the centroid start's fit (or the first that found a rim), flagged
+    return PressLabel(reldir, best.cx, best.cy, best.radius, False, "; ".join(problems), "auto", best.visible,
+                      best.residual)
+
+
+class _RimFit(NamedTuple):
+    """One start's circle (px), the fraction of rays that found the rim, the median
+    residual of the rim points, and whether the fit settled."""
+
+    cx: float
+    cy: float
+    radius: float
+    visible: float
+    residual: float
+    settled: bool
+
+
+def _settled(fits: list[_RimFit], tol: float) -> bool:
+    """Whether the last circle of ``fits`` repeats the one before it, or the one two
+    rounds before (a fit that alternates between two circles), to within ``tol`` px
+    (centre shift plus radius change)."""
+    def move(a: _RimFit, b: _RimFit) -> float:
+        return math.hypot(a.cx - b.cx, a.cy - b.cy) + abs(a.radius - b.radius)
+    return any(len(fits) > k and move(fits[-1], fits[-1 - k]) < tol for k in (1, 2))
+
+
+def _rim_fit(dist: np.ndarray, threshold: float, cx: float, cy: float, ball_radius_px: float,
+             cfg: DetectionConfig) -> _RimFit:
+    """Rays from ``(cx, cy)`` over the ``(H, W)`` colour distance, a circle through their
+    peaks, repeated from the circle's centre until it settles (at most
+    ``cfg.iterations`` rounds). A fit that alternates between two circles keeps the one
+    with the smaller residual. The radius is NaN when fewer than 8 rays find a peak."""
+    h, w = dist.shape
     angles = np.linspace(0.0, 2.0 * math.pi, cfg.n_rays, endpoint=False)
     step = 0.5
     radii = np.arange(1.0, ball_radius_px, step, dtype=np.float32)
     cos, sin = np.cos(angles)[:, None], np.sin(angles)[:, None]
-    r, visible, residual = math.nan, 0.0, math.nan
+    fits: list[_RimFit] = []
     for _ in range(cfg.iterations):
         rx = (cx + cos * radii).astype(np.float32)
         ry = (cy + sin * radii).astype(np.float32)
@@ -177,35 +241,38 @@ def detect_contact_circle(
         beyond = np.minimum(peak + int(2.0 / step), radii.size - 1)
         in_until = np.cumprod(inside, axis=1)[np.arange(cfg.n_rays), beyond].astype(bool)
         ok = in_until & (peak > 0) & (peak < radii.size - 1) & (prof[np.arange(cfg.n_rays), peak] > threshold)
-        visible = float(ok.mean())
         if ok.sum() < 8:
-            break
+            return fits[-1] if fits else _RimFit(cx, cy, math.nan, float(ok.mean()), math.nan, False)
         # sub-sample peak: vertex of the parabola through the peak and its neighbours
         rows = np.arange(cfg.n_rays)[ok]
         p0, pm, pp = prof[rows, peak[ok]], prof[rows, peak[ok] - 1], prof[rows, peak[ok] + 1]
         curv = pm - 2.0 * p0 + pp
         frac = np.where(curv < 0, 0.5 * (pm - pp) / np.where(curv < 0, curv, -1.0), 0.0).clip(-0.5, 0.5)
         rad = radii[peak[ok]] + frac * step
-        px = cx + np.cos(angles[ok]) * rad
-        py = cy + np.sin(angles[ok]) * rad
-        cx, cy, r, residual = _trimmed_circle(px, py)
-    if not math.isfinite(r):
-        raise NoContactError(
-            f"press {reldir or '?'}: no contact rim found (only {visible:.0%} of rays peak inside the image)"
-        )
-    reasons = []
-    if visible < cfg.min_visible:
-        reasons.append(f"only {visible:.0%} of the rim is inside the image")
-    if residual > cfg.max_residual_px:
-        reasons.append(f"rim is not circular (median residual {residual:.1f} px)")
-    if r < cfg.min_radius_px:
-        reasons.append(f"contact radius {r:.1f} px < {cfg.min_radius_px:g} px")
-    depth = indentation_px(r, ball_radius_px)
+        cx, cy, r, residual = _trimmed_circle(cx + np.cos(angles[ok]) * rad, cy + np.sin(angles[ok]) * rad)
+        fits.append(_RimFit(cx, cy, r, float(ok.mean()), residual, False))
+        if _settled(fits, cfg.settle_px):
+            break
+    best = min(fits[-2:], key=lambda f: f.residual)
+    return best._replace(settled=_settled(fits, cfg.settle_px))
+
+
+def _label_problems(fit: _RimFit, ball_radius_px: float, max_indentation_px: float, cfg: DetectionConfig
+                    ) -> list[str]:
+    """Why a fitted circle cannot be trained on (empty when it can)."""
+    reasons = [] if fit.settled else [f"rim fit did not settle within {cfg.iterations} rounds"]
+    if fit.visible < cfg.min_visible:
+        reasons.append(f"only {fit.visible:.0%} of the rim is inside the image")
+    if fit.residual > cfg.max_residual_px:
+        reasons.append(f"rim is not circular (median residual {fit.residual:.1f} px)")
+    if fit.radius < cfg.min_radius_px:
+        reasons.append(f"contact radius {fit.radius:.1f} px < {cfg.min_radius_px:g} px")
+    depth = indentation_px(fit.radius, ball_radius_px)
     if depth > max_indentation_px:
         reasons.append(
-            f"contact radius {r:.1f} px implies indentation {depth:.1f} px > max {max_indentation_px:.1f} px"
+            f"contact radius {fit.radius:.1f} px implies indentation {depth:.1f} px > max {max_indentation_px:.1f} px"
         )
-    return PressLabel(reldir, cx, cy, r, not reasons, "; ".join(reasons), "auto", visible, residual)
+    return reasons
 
 
 def read_labels(path: str | Path) -> dict[str, PressLabel]:
