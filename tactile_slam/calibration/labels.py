@@ -130,73 +130,6 @@ def indentation_px(radius: float, ball_radius_px: float) -> float:
     return ball_radius_px - math.sqrt(ball_radius_px**2 - radius**2)
 
 
-def detect_contact_circle(
-    image: np.ndarray,
-    background: np.ndarray,
-    ball_radius_px: float,
-    max_indentation_px: float,
-    cfg: DetectionConfig = DetectionConfig(),
-    reldir: str = "",
-) -> PressLabel:
-    """Detect the contact circle of a ball press.
-
-    Args:
-        image: ``(H, W, 3)`` BGR press image (uint8 or float).
-        background: ``(H, W, 3)`` BGR background, same size.
-        ball_radius_px: ball radius in pixels.
-        max_indentation_px: deepest plausible indentation in pixels.
-        cfg: detector settings.
-        reldir: press name carried into the label and error messages.
-
-    Returns:
-        The label; ``reliable`` False with a ``reason`` when it fails a check.
-
-    Raises:
-        NoContactError: no changed region large enough for a 1-px-deep press.
-        ValueError: mismatched or non-finite inputs.
-    """
-    if image.shape != background.shape or image.ndim != 3 or image.shape[2] != 3:
-        raise ValueError(f"image {image.shape} and background {background.shape} must both be (H, W, 3)")
-    diff = image.astype(np.float32) - background.astype(np.float32)
-    if not np.isfinite(diff).all():
-        raise ValueError(f"press {reldir}: image or background has non-finite values")
-    h, w = diff.shape[:2]
-    dist = np.linalg.norm(cv2.GaussianBlur(diff, (0, 0), cfg.blur_sigma), axis=2).astype(np.float32)
-    med = float(np.median(dist))
-    spread = 1.4826 * float(np.median(np.abs(dist - med)))
-    threshold = med + cfg.noise_sigmas * max(spread, 0.5)  # floor: half a grey level (noise-free images)
-    changed = cv2.morphologyEx((dist > threshold).astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
-    n, lab, stats, _ = cv2.connectedComponentsWithStats(changed, connectivity=8)
-    min_area = 2.0 * math.pi * ball_radius_px  # contact area of a 1-px-deep press: pi * (2 R * 1)
-    if n < 2 or stats[1:, cv2.CC_STAT_AREA].max() < min_area:
-        largest = 0 if n < 2 else int(stats[1:, cv2.CC_STAT_AREA].max())
-        raise NoContactError(
-            f"press {reldir or '?'}: no visible contact (largest changed region {largest} px < {min_area:.0f} px "
-            f"at colour distance > {threshold:.1f}); remove it from catalog.csv or give its label in a labels file"
-        )
-    region = lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
-    wgt = np.where(region, dist, 0.0)
-    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
-    cx, cy = float((wgt * xs).sum() / wgt.sum()), float((wgt * ys).sum() / wgt.sum())
-
-    ring = 0.5 * math.sqrt(float(region.sum()) / math.pi)
-    turns = np.linspace(0.0, 2.0 * math.pi, max(cfg.starts - 1, 0), endpoint=False)
-    starts = [(cx, cy)] + [(cx + ring * math.cos(a), cy + ring * math.sin(a)) for a in turns]
-    fits = [_rim_fit(dist, threshold, sx, sy, ball_radius_px, cfg) for sx, sy in starts]
-    if not any(math.isfinite(f.radius) for f in fits):
-        raise NoContactError(
-            f"press {reldir or '?'}: no contact rim found (only {fits[0].visible:.0%} of rays peak inside the image)"
-        )
-    checked = [(f, _label_problems(f, ball_radius_px, max_indentation_px, cfg)) for f in fits if math.isfinite(f.radius)]
-    passing = [f for f, problems in checked if not problems]
-    if passing:
-        best = max(passing, key=lambda f: f.radius)
-        return PressLabel(reldir, best.cx, best.cy, best.radius, True, "", "auto", best.visible, best.residual)
-    best, problems = checked[0]  # nothing passes: the centroid start's fit (or the first that found a rim), flagged
-    return PressLabel(reldir, best.cx, best.cy, best.radius, False, "; ".join(problems), "auto", best.visible,
-                      best.residual)
-
-
 class _RimFit(NamedTuple):
     """One start's circle (px), the fraction of rays that found the rim, the median
     residual of the rim points, and whether the fit settled."""
@@ -273,6 +206,74 @@ def _label_problems(fit: _RimFit, ball_radius_px: float, max_indentation_px: flo
             f"contact radius {fit.radius:.1f} px implies indentation {depth:.1f} px > max {max_indentation_px:.1f} px"
         )
     return reasons
+
+
+def detect_contact_circle(
+    image: np.ndarray,
+    background: np.ndarray,
+    ball_radius_px: float,
+    max_indentation_px: float,
+    cfg: DetectionConfig = DetectionConfig(),
+    reldir: str = "",
+) -> PressLabel:
+    """Detect the contact circle of a ball press.
+
+    Args:
+        image: ``(H, W, 3)`` BGR press image (uint8 or float).
+        background: ``(H, W, 3)`` BGR background, same size.
+        ball_radius_px: ball radius in pixels.
+        max_indentation_px: deepest plausible indentation in pixels.
+        cfg: detector settings.
+        reldir: press name carried into the label and error messages.
+
+    Returns:
+        The label; ``reliable`` False with a ``reason`` when it fails a check.
+
+    Raises:
+        NoContactError: no changed region large enough for a 1-px-deep press.
+        ValueError: mismatched or non-finite inputs.
+    """
+    if image.shape != background.shape or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"image {image.shape} and background {background.shape} must both be (H, W, 3)")
+    diff = image.astype(np.float32) - background.astype(np.float32)
+    if not np.isfinite(diff).all():
+        raise ValueError(f"press {reldir}: image or background has non-finite values")
+    h, w = diff.shape[:2]
+    dist = np.linalg.norm(cv2.GaussianBlur(diff, (0, 0), cfg.blur_sigma), axis=2).astype(np.float32)
+    med = float(np.median(dist))
+    spread = 1.4826 * float(np.median(np.abs(dist - med)))
+    threshold = med + cfg.noise_sigmas * max(spread, 0.5)  # floor: half a grey level (noise-free images)
+    changed = cv2.morphologyEx((dist > threshold).astype(np.uint8), cv2.MORPH_OPEN, np.ones((3, 3), np.uint8))
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(changed, connectivity=8)
+    min_area = 2.0 * math.pi * ball_radius_px  # contact area of a 1-px-deep press: pi * (2 R * 1)
+    if n < 2 or stats[1:, cv2.CC_STAT_AREA].max() < min_area:
+        largest = 0 if n < 2 else int(stats[1:, cv2.CC_STAT_AREA].max())
+        raise NoContactError(
+            f"press {reldir or '?'}: no visible contact (largest changed region {largest} px < {min_area:.0f} px "
+            f"at colour distance > {threshold:.1f}); remove it from catalog.csv or give its label in a labels file"
+        )
+    region = lab == 1 + int(np.argmax(stats[1:, cv2.CC_STAT_AREA]))
+    wgt = np.where(region, dist, 0.0)
+    ys, xs = np.mgrid[0:h, 0:w].astype(np.float32)
+    cx, cy = float((wgt * xs).sum() / wgt.sum()), float((wgt * ys).sum() / wgt.sum())
+
+    ring = 0.5 * math.sqrt(float(region.sum()) / math.pi)
+    turns = np.linspace(0.0, 2.0 * math.pi, cfg.starts - 1, endpoint=False)
+    starts = [(cx, cy)] + [(cx + ring * math.cos(a), cy + ring * math.sin(a)) for a in turns]
+    fits = [_rim_fit(dist, threshold, sx, sy, ball_radius_px, cfg) for sx, sy in starts]
+    if not any(math.isfinite(f.radius) for f in fits):
+        raise NoContactError(
+            f"press {reldir or '?'}: no contact rim found (only {fits[0].visible:.0%} of rays peak inside the image)"
+        )
+    checked = [(f, _label_problems(f, ball_radius_px, max_indentation_px, cfg))
+               for f in fits if math.isfinite(f.radius)]
+    passing = [f for f, problems in checked if not problems]
+    if passing:
+        best = max(passing, key=lambda f: f.radius)
+        return PressLabel(reldir, best.cx, best.cy, best.radius, True, "", "auto", best.visible, best.residual)
+    best, problems = checked[0]  # nothing passes: the centroid start's fit (or the first that found a rim), flagged
+    return PressLabel(reldir, best.cx, best.cy, best.radius, False, "; ".join(problems), "auto", best.visible,
+                      best.residual)
 
 
 def read_labels(path: str | Path) -> dict[str, PressLabel]:
