@@ -7,8 +7,8 @@ from __future__ import annotations
 
 import importlib
 
-BENCHMARKS = ("calibration", "geometry", "io", "loops", "pipeline", "posegraph", "reconstruction", "realtime", "registration",
-              "render", "tracking")
+BENCHMARKS = ("calibration", "geometry", "io", "labels", "loops", "pipeline", "posegraph", "reconstruction", "realtime",
+              "registration", "render", "tracking")
 
 
 def register(sub) -> None:
