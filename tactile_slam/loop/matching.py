@@ -174,7 +174,8 @@ def self_similarity(feats: Features, settings: RansacSettings | None = None) -> 
     object as well as the right place, so its loops are no independent evidence.
 
     Returns:
-        the :class:`Similarity` between keypoint positions, or ``None``.
+        the :class:`Similarity` between keypoint positions (``inliers`` counts distinct
+        keypoint pairs), or ``None``.
     """
     s = replace(settings or RansacSettings(), ambiguity_ratio=None)
     xy, d = feats.keypoints, feats.descriptors
@@ -193,8 +194,18 @@ def self_similarity(feats: Features, settings: RansacSettings | None = None) -> 
     mutual = idx[(nn[nn] == idx) & torch.isfinite(nearest)]
     if len(mutual) < s.min_inliers:
         return None
+    src, dst = mutual.numpy(), nn[mutual].numpy()
     pts = feats.keypoints.numpy()
-    return estimate_similarity(pts[mutual.numpy()], pts[nn[mutual].numpy()], s)
+    M, mask = _ransac(pts[src], pts[dst], s)
+    if M is None:
+        return None
+    # a mutual pair enters in both directions, and a half turn about its midpoint maps each
+    # onto the other: count keypoint pairs, not directions, so every kind of self-map needs
+    # min_inliers distinct pairs
+    pairs = {(min(a, b), max(a, b)) for a, b in zip(src[mask], dst[mask])}
+    if len(pairs) < s.min_inliers:
+        return None
+    return Similarity(M.astype(np.float64), len(pairs), len(src))
 
 
 def similarity_to_se3(M: np.ndarray | torch.Tensor, shape: tuple[int, int], m_per_px: float) -> torch.Tensor:

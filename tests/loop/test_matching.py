@@ -139,6 +139,27 @@ def test_self_similarity_of_a_pattern_that_appears_twice():
     assert self_similarity(Features(xy[:5], twice[:5])) is None  # fewer than min_inliers
 
 
+@pytest.mark.parametrize("pairs, flagged", [(4, False), (7, False), (8, True)])
+def test_self_similarity_counts_keypoint_pairs_not_directions(pairs, flagged):
+    """Keypoints in pairs placed point-symmetrically about one centre, each pair with its own
+    shared descriptor (as the rim of a round contact gives after SIFT's orientation
+    normalisation): a half turn maps every pair onto itself in both directions. Four pairs
+    give the 8 correspondences RANSAC needs, but only 4 distinct pairs: not a repeating
+    texture. Eight pairs are."""
+    g = torch.Generator().manual_seed(1)
+    centre = torch.tensor([160.0, 120.0])
+    ang = torch.rand(pairs, generator=g) * math.pi
+    rad = 20.0 + 60.0 * torch.rand(pairs, generator=g)
+    off = torch.stack([torch.cos(ang), torch.sin(ang)], 1) * rad[:, None]
+    xy = torch.cat([centre + off, centre - off])
+    desc = torch.rand(pairs, 128, generator=g) * 10
+    feats = Features(xy, torch.cat([desc, desc + 1e-3 * torch.rand(pairs, 128, generator=g)]))
+    sim = self_similarity(feats)
+    assert (sim is not None) == flagged
+    if flagged:
+        assert sim.inliers == pairs and np.allclose(sim.M[:, :2], -np.eye(2), atol=1e-3)
+
+
 def test_self_similarity_on_rendered_textures():
     """A square-lattice texture (1 mm waves along x and y) maps onto itself by a symmetry of
     the lattice (a quarter turn or a whole-period shift, unit scale); random waves and
