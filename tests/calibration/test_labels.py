@@ -192,15 +192,13 @@ class TestRealPresses:
         ring inside the contact (radius 17 px, flagged). The rim encloses it: radius 29 px,
         where the SDK model (trained on hand labels) matches the analytic ball as well as
         on the other presses."""
-        from tactile_slam.calibration.dataset import sphere_targets
+        from tactile_slam.calibration.evaluate import evaluate_model
 
         lb = mini_labels["6.310mm/38"]
         assert lb.reliable and 27.0 < lb.radius < 31.0
-        press = mini_calib.press(lb.reldir)
-        ang, mask = sphere_targets((240, 320), lb.cx, lb.cy, lb.radius, press.ball_radius_px(MM_PER_PX))
         with torch.no_grad():
-            pred = reference_model(pixel_features(torch.from_numpy(mini_calib.image(press))[None])[0][mask])
-        assert float((pred - ang[mask]).abs().mean()) < 0.05
+            ev = evaluate_model(reference_model, mini_calib, mini_labels, [lb.reldir], MM_PER_PX)
+        assert ev.angle_mae < 0.05
 
 
 class TestLabelFiles:
