@@ -165,7 +165,8 @@ class Tracker:
         result: a slip of two ribs needs two steps. Returns ``prev_T_kf`` if nothing beat it."""
         c = self.config
         moves = torch.cat([_eye()[None], se3.shifts_xy(c.keyframe_near_mm / 1000.0)])
-        start, first, best_ccs, moved = torch.linalg.inv(prev_T_kf), None, None, False
+        tracked = torch.linalg.inv(prev_T_kf)
+        start, first, best_ccs = tracked, None, None
         for _ in range(c.keyframe_near_rounds):
             res = self.registrar.register(self.kf_prepared, Frame.cat([frame] * 5), moves @ start)
             T = res.tar_T_ref.to(torch.float64).cpu()
@@ -180,8 +181,8 @@ class Tracker:
             k = int(score.argmax())
             if k == 0 or not math.isfinite(float(score[k])):
                 break
-            start, best_ccs, moved = T[k], float(score[k]), True
-        if not moved:
+            start, best_ccs = T[k], float(score[k])
+        if start is tracked:
             return prev_T_kf
         self.moved_edges += 1
         return torch.linalg.inv(start)
