@@ -207,6 +207,12 @@ class TrackingConfig:
     # while a round moves the edge, search again from the new best (a slip of two ribs),
     # at most this many batches of 5 per keyframe
     keyframe_near_rounds: int = 3
+    # contact hysteresis (docs/benchmarks.md, "Contact hysteresis"): a session in progress
+    # goes on through frames whose eroded contact area is below the in-contact minimum
+    # (contact.min_contact_mm2, 2.0 mm^2) but at least this, while they register; such a
+    # frame never starts a session and ends it if it does not register. None: the
+    # reference rule (every frame below the minimum ends the session)
+    keep_contact_mm2: float | None = 1.0
 
 
 @dataclass

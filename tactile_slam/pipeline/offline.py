@@ -142,7 +142,8 @@ class OfflinePipeline:
     def _tracker(self):
         if self.options.method == "nf":
             nf = replace(self.config.normalflow, n_samples=5000, selection="random", check_scores=False)
-            return FrameToFrameTracker(NormalFlowRegistrar(nf, self.config.tracking))
+            return FrameToFrameTracker(NormalFlowRegistrar(nf, self.config.tracking),
+                                       self.config.tracking.keep_contact_mm2)
         return Tracker(self.config.tracking, NormalFlowRegistrar(self.config.normalflow, self.config.tracking))
 
     # ------------------------------------------------------------------ loop

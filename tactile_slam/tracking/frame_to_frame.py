@@ -1,7 +1,8 @@
 """Frame-to-frame NormalFlow without keyframes: the "NF" baseline of method.md 9.5.
 
 Each frame is registered against the previous one and the estimates are composed; a
-new session starts only when contact starts. Same ``step`` interface as
+new session starts only when contact starts, and a running one goes on through frames
+above ``keep_contact_mm2`` as in :class:`Tracker`. Same ``step`` interface as
 :class:`tactile_slam.tracking.tracker.Tracker`: the session head plays the keyframe,
 so ``kf_T_frame`` is the frame's pose in the session's first frame.
 """
@@ -12,12 +13,14 @@ import torch
 
 from tactile_slam.geometry.frame import Frame
 from tactile_slam.tracking.keyframe import Keyframe
-from tactile_slam.tracking.tracker import Registrar, TrackStep
+from tactile_slam.tracking.tracker import Registrar, TrackStep, check_keep_contact, holds_contact
 
 
 class FrameToFrameTracker:
-    def __init__(self, registrar: Registrar):
+    def __init__(self, registrar: Registrar, keep_contact_mm2: float | None = None):
+        check_keep_contact(keep_contact_mm2)
         self.registrar = registrar
+        self.keep_contact_mm2 = keep_contact_mm2
         self.head: Keyframe | None = None
         self.prev_prepared = None
         self.head_T_prev = torch.eye(4, dtype=torch.float64)
@@ -26,7 +29,7 @@ class FrameToFrameTracker:
     def step(self, frame: Frame) -> TrackStep:
         """Track one frame (``B = 1``)."""
         index = int(frame.index[0])
-        if not bool(frame.in_contact[0]):
+        if not holds_contact(frame, self.prev_prepared is not None, self.keep_contact_mm2):
             self.prev_prepared = None
             return TrackStep(index=index, in_contact=False)
         if self.prev_prepared is None:

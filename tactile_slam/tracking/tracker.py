@@ -99,6 +99,23 @@ def _eye() -> torch.Tensor:
     return torch.eye(4, dtype=torch.float64)
 
 
+def check_keep_contact(keep_contact_mm2: float | None) -> None:
+    """``tracking.keep_contact_mm2`` is ``None`` or a finite number >= 0."""
+    if keep_contact_mm2 is not None and (isinstance(keep_contact_mm2, bool)
+                                         or not (math.isfinite(keep_contact_mm2) and keep_contact_mm2 >= 0)):
+        raise ValueError(f"tracking.keep_contact_mm2 must be a finite number >= 0 or None, got {keep_contact_mm2!r}")
+
+
+def holds_contact(frame: Frame, running: bool, keep_contact_mm2: float | None) -> bool:
+    """Whether a ``B = 1`` frame is tracked: it is in contact, or a session is
+    ``running`` and its eroded contact area is at least ``keep_contact_mm2`` (mm^2;
+    ``None``: never)."""
+    if bool(frame.in_contact[0]):
+        return True
+    return running and keep_contact_mm2 is not None and \
+        float(frame.contact.sum()) * frame.mm_per_px ** 2 >= keep_contact_mm2
+
+
 def _kf_T_frame(res: RegistrationResult) -> torch.Tensor:
     """``(4, 4)`` float64 pose of the target frame in the keyframe from a ``B = 1`` result."""
     return torch.linalg.inv(res.tar_T_ref[0].to(torch.float64).cpu())
@@ -127,6 +144,7 @@ class Tracker:
         if isinstance(config.keyframe_near_rounds, bool) or not isinstance(config.keyframe_near_rounds, int) \
                 or config.keyframe_near_rounds < 1:
             raise ValueError(f"tracking.keyframe_near_rounds must be an integer >= 1, got {config.keyframe_near_rounds!r}")
+        check_keep_contact(config.keep_contact_mm2)
         self.config = config
         self.registrar = registrar
         self.next_keyframe_id = 0
@@ -210,11 +228,9 @@ class Tracker:
         if len(frame) != 1:
             raise ValueError(f"Tracker.step takes one frame, got a batch of {len(frame)}")
         index = int(frame.index[0])
-        if not bool(frame.in_contact[0]):
-            emitted = self._flush_tail()
-            self.prev_in_contact = False
-            self.prev = None
-            return TrackStep(index=index, in_contact=False, keyframes=emitted)
+        if not holds_contact(frame, self.prev_in_contact, self.config.keep_contact_mm2):
+            return self._lost(index, self._flush_tail())
+        weak = not bool(frame.in_contact[0])  # below the minimum: continues a session, never starts one
 
         if not self.prev_in_contact:
             kf = self._new_session(frame)
@@ -226,6 +242,8 @@ class Tracker:
             if self.prev_is_keyframe or self._continuous(frame, kf_T_frame):
                 return self._tracked(frame, res, kf_T_frame, [])
         if self.prev_is_keyframe:
+            if weak:
+                return self._lost(index, [])
             kf = self._new_session(frame)
             return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf], is_keyframe=True))
         # lazy keyframe rule: the previous frame becomes a keyframe, then retry
@@ -238,6 +256,8 @@ class Tracker:
         res = self._register(frame, self._init_guess())
         if bool(res.ok):
             return self._tracked(frame, res, _kf_T_frame(res), [prev_kf])
+        if weak:  # the session's tail is the keyframe just made
+            return self._lost(index, [prev_kf])
         kf = self._new_session(frame)
         return self._done(
             frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[prev_kf, kf], is_keyframe=True)
@@ -250,6 +270,12 @@ class Tracker:
         return emitted
 
     # ----------------------------------------------------------------- internals
+    def _lost(self, index: int, emitted: list[Keyframe]) -> TrackStep:
+        """Contact loss: the session ends; ``emitted``: its flushed tail, if any."""
+        self.prev_in_contact = False
+        self.prev = None
+        return TrackStep(index=index, in_contact=False, keyframes=emitted)
+
     def _continuous(self, frame: Frame, kf_T_frame: torch.Tensor) -> bool:
         """Whether the motion since the previous frame implied by ``kf_T_frame`` (from a
         registration against an older keyframe) stays within the speed limits; frames without

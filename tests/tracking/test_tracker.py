@@ -16,6 +16,7 @@ import torch
 from tactile_slam.config import TrackingConfig
 from tactile_slam.geometry.frame import Frame
 from tactile_slam.registration.result import RegistrationResult
+from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
 from tactile_slam.tracking.tracker import Tracker
 
 
@@ -29,11 +30,15 @@ def pose(i: int) -> torch.Tensor:
     return torch.linalg.matrix_power(step, i)
 
 
-def frame(i: int, contact: bool = True, fps: float = 25.0) -> Frame:
+def frame(i: int, contact: bool | int = True, fps: float = 25.0) -> Frame:
+    """``contact``: in contact (True), not (False), or a number of contact pixels below
+    the in-contact minimum (a weak frame)."""
     z = torch.zeros(1, 4, 4)
+    mask = torch.zeros(1, 16, dtype=torch.bool)
+    mask[:, :int(contact)] = True
     return Frame(
-        gradients=torch.zeros(1, 4, 4, 2), height=z, contact=torch.zeros(1, 4, 4, dtype=torch.bool),
-        normals=torch.zeros(1, 4, 4, 3), curvature=z, in_contact=torch.tensor([contact]),
+        gradients=torch.zeros(1, 4, 4, 2), height=z, contact=mask.view(1, 4, 4),
+        normals=torch.zeros(1, 4, 4, 3), curvature=z, in_contact=torch.tensor([contact is True]),
         index=torch.tensor([i]), timestamp=torch.tensor([i / fps], dtype=torch.float64), mm_per_px=0.0634,
     )
 
@@ -147,6 +152,57 @@ def test_stream_ending_mid_contact_keeps_tail():
     assert kfs[-1].video_index == 3 and not kfs[-1].new_session
 
 
+KEEP = 8 * 0.0634 ** 2  # mm^2: 8 of the test frames' 16 pixels
+
+
+def test_weak_frames_continue_a_session():
+    """Frames below the in-contact minimum but above keep_contact_mm2 are tracked like
+    any frame inside a session; with None (the reference rule) each dip starts anew."""
+    contacts = [True] * 3 + [10, 8] + [True] * 2
+    steps, kfs, _ = run(contacts, keep_contact_mm2=KEEP)
+    assert [(k.video_index, k.session, k.new_session) for k in kfs] == [(0, 0, True), (6, 0, False)]
+    assert all(s.in_contact and s.session == 0 for s in steps) and steps[4].keyframe_id == 0
+    check_poses(steps, kfs)
+    steps, kfs, _ = run(contacts, keep_contact_mm2=None)
+    assert [(k.video_index, k.new_session) for k in kfs] == [(0, True), (2, False), (5, True), (6, False)]
+    assert not steps[3].in_contact and not steps[4].in_contact
+
+
+def test_weak_frames_never_start_a_session_and_too_little_contact_ends_one():
+    steps, kfs, _ = run([False, 12, 12, True, True, 7, True], keep_contact_mm2=KEEP)
+    assert [s.in_contact for s in steps] == [False, False, False, True, True, False, True]
+    assert [(k.video_index, k.session, k.new_session) for k in kfs] == [
+        (3, 0, True), (4, 0, False), (6, 1, True)]
+    assert steps[5].keyframes == kfs[1:2]  # the first session's tail, flushed by the loss
+    check_poses(steps, kfs)
+
+
+@pytest.mark.parametrize("fails_at, emitted", [(3, [(2, False)]), (1, [])])
+def test_weak_frame_that_does_not_register_ends_the_session(fails_at, emitted):
+    """Failure after the lazy retry (or right after a keyframe): contact loss, never a
+    new session from the weak frame; the next strong frame starts one."""
+    contacts = [True] * fails_at + [10, True, True]
+    steps, kfs, _ = run(contacts, fails=lambda r, t: t == fails_at, keep_contact_mm2=KEEP)
+    s = steps[fails_at]
+    assert not s.in_contact and s.kf_T_frame is None
+    assert [(k.video_index, k.new_session) for k in s.keyframes] == emitted
+    nxt = steps[fails_at + 1]
+    assert nxt.is_keyframe and nxt.keyframes[0].new_session and nxt.session == 1
+    assert [k.video_index for k in kfs].count(fails_at - 1) <= 1  # no tail made twice
+    check_poses(steps, kfs)
+
+
+def test_frame_to_frame_baseline_keeps_contact_the_same_way():
+    reg = ScriptedRegistrar(lambda r, t: False)
+    tr = FrameToFrameTracker(reg, KEEP)
+    steps = [tr.step(frame(i, c)) for i, c in enumerate([12, True, True, 10, 5, True])]
+    assert [s.in_contact for s in steps] == [False, True, True, True, False, True]
+    assert [s.session for s in steps if s.in_contact] == [0, 0, 0, 1]
+    torch.testing.assert_close(steps[3].kf_T_frame, torch.linalg.inv(pose(1)) @ pose(3))
+    with pytest.raises(ValueError, match="keep_contact_mm2"):
+        FrameToFrameTracker(reg, -1.0)
+
+
 def test_constant_velocity_init_extrapolates():
     _, _, reg = run([True] * 4, init="constant_velocity")
     ref, tar, init = reg.calls[-1]  # frame 3 against keyframe 0
@@ -206,6 +262,9 @@ def test_bad_config_and_batch():
             Tracker(TrackingConfig(max_deg_per_s=bad), ScriptedRegistrar(lambda r, t: False))
         with pytest.raises(ValueError, match="max_mm_per_s"):
             Tracker(TrackingConfig(max_mm_per_s=bad), ScriptedRegistrar(lambda r, t: False))
+    for bad in (-1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="keep_contact_mm2"):
+            Tracker(TrackingConfig(keep_contact_mm2=bad), ScriptedRegistrar(lambda r, t: False))
     tr = Tracker(TrackingConfig(), ScriptedRegistrar(lambda r, t: False))
     with pytest.raises(ValueError, match="one frame"):
         tr.step(Frame.cat([frame(0), frame(1)]))
