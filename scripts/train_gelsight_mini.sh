@@ -10,7 +10,7 @@ cd "$(dirname "$0")/.."
 DATA=${1:-../shared/data/gelsight_mini}
 OUT=${OUT:-build/gelsight_mini_calibration}
 PY=${PY:-.venv/bin/tactile-slam}
-"$PY" calibrate train "$DATA/calibration" --out "$OUT" --seed 0 \
+"$PY" calibrate train "$DATA/calibration" --out "$OUT" --seed 0 --restarts 4 \
     --reference "$DATA/reference_model/nnmodel.pth" --colour-model --json "$OUT/summary.json"
 mkdir -p models
 cp "$OUT/model.pt" models/gelsight_mini.pt

@@ -53,6 +53,7 @@ def run_training(
     ``training.json``, ``evaluation.json`` and ``evaluation.txt`` (held-out errors per
     press, beside ``reference`` when given) and, with ``colour_model``, ``colour_model.pt``.
     Returns the evaluation summary."""
+    cfg.validate()  # before the labelling
     out = Path(out_dir)
     calib = load_calibration_set(calib_dir, sensor.shape)
     labels = labels_for(calib, sensor, labels_file)
@@ -67,6 +68,9 @@ def run_training(
     result = train_model(data.train, cfg, data.test if len(data.test) else None)
     model = result.model
     say(f"trained in {result.seconds:.1f} s")
+    if cfg.restarts > 1:
+        fits = ", ".join(f"seed {r['seed']} {r['train_mae']:.4f}" for r in result.restarts)
+        say(f"kept seed {result.seed}; training angle MAE (rad): {fits}")
     evals = {"model": evaluate_model(model, calib, by_dir, data.split["test"], sensor.mm_per_px)} \
         if data.split["test"] else {}
     if reference is not None and evals:
@@ -86,6 +90,8 @@ def run_training(
         "image_size": list(calib.shape),
         "data_fingerprint": calib.fingerprint(),
         "seed": cfg.seed,
+        "model_seed": result.seed,
+        "restarts": result.restarts,
         "split": data.split,
         "skipped": data.skipped,
         "train_config": {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(cfg).items()},

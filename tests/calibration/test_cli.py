@@ -11,7 +11,8 @@ def test_label_then_train_then_evaluate(synthetic_calib, tmp_path, capsys):
     labels = read_labels(out / "labels.csv")
     assert len(labels) == 6 and (out / "overlays" / "overview.png").exists()
     assert main(["calibrate", "train", str(synthetic_calib), "--out", str(out / "m"), "--labels",
-                 str(out / "labels.csv"), "--epochs", "2", "--hidden", "8,8", "--colour-model"]) == 0
+                 str(out / "labels.csv"), "--epochs", "2", "--hidden", "8,8", "--colour-model",
+                 "--restarts", "2"]) == 0
     for name in ("model.pt", "training_curve.png", "training.json", "evaluation.json", "evaluation.txt",
                  "colour_model.pt"):
         assert (out / "m" / name).exists(), name
@@ -20,6 +21,8 @@ def test_label_then_train_then_evaluate(synthetic_calib, tmp_path, capsys):
     assert meta["sensor"] == "GelSight Mini" and meta["image_size"] == [240, 320] and meta["seed"] == 0
     assert len(meta["data_fingerprint"]) == 16 and set(meta["split"]) == {"train", "test"}
     assert "heldout_angle_mae_rad" in meta["metrics"]
+    assert [r["seed"] for r in meta["restarts"]] == [0, 1] and meta["model_seed"] in (0, 1)
+    assert meta["train_config"]["restarts"] == 2
     js = tmp_path / "ev.json"
     assert main(["calibrate", "evaluate", str(synthetic_calib), "--model", str(out / "m" / "model.pt"),
                  "--json", str(js)]) == 0
@@ -42,6 +45,12 @@ def test_evaluate_reference_on_real_data(mini_data, tmp_path):
 def test_bad_folder_is_a_clear_error(tmp_path, capsys):
     assert main(["calibrate", "label", str(tmp_path)]) == 2
     assert "catalog not found" in capsys.readouterr().err
+
+
+def test_bad_restarts_fail_before_labelling(synthetic_calib, tmp_path, capsys):
+    assert main(["calibrate", "train", str(synthetic_calib), "--out", str(tmp_path / "m"), "--restarts", "0"]) == 2
+    assert "restarts must be a positive integer" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
 
 
 def test_heldout_needs_matching_data(synthetic_calib, mini_data, capsys):
