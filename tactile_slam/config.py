@@ -213,6 +213,12 @@ class TrackingConfig:
     # frame never starts a session and ends it if it does not register. None: the
     # reference rule (every frame below the minimum ends the session)
     keep_contact_mm2: float | None = 1.0
+    # coarse fallback (docs/benchmarks.md, "Coarse fallback"): a frame about to start a new
+    # session inside a contact (its registration against the previous frame failed) is
+    # registered against it once more through block-averaged levels of these factors and
+    # kept if that verifies within the speed limits; 4 widens NormalFlow's basin about 4x,
+    # to more than a frame's motion limit (1 mm = 16 px at 25 fps); () disables
+    fallback_factors: tuple[int, ...] = (4,)
 
 
 @dataclass

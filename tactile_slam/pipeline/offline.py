@@ -83,7 +83,8 @@ def tracker_counts(tracker) -> dict:
     """The tracker's counters for ``stats.json`` (0 for trackers without them, e.g. the
     frame-to-frame baselines)."""
     return {"implausible_motions": getattr(tracker, "implausible", 0),
-            "moved_keyframe_edges": getattr(tracker, "moved_edges", 0)}
+            "moved_keyframe_edges": getattr(tracker, "moved_edges", 0),
+            "coarse_rescues": getattr(tracker, "coarse_rescues", 0)}
 
 
 class OfflinePipeline:

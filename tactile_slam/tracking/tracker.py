@@ -46,6 +46,9 @@ class Registrar(Protocol):
 
     def register(self, prepared: Any, tar: Frame, init_tar_T_ref: torch.Tensor) -> RegistrationResult: ...
 
+    def register_coarse(self, prepared: Any, tar: Frame, init_tar_T_ref: torch.Tensor,
+                        factors: tuple[int, ...]) -> RegistrationResult: ...
+
 
 class NormalFlowRegistrar:
     """:class:`Registrar` backed by NormalFlow with the tracking thresholds.
@@ -65,6 +68,14 @@ class NormalFlowRegistrar:
 
     def register(self, prepared, tar: Frame, init_tar_T_ref: torch.Tensor) -> RegistrationResult:
         return register_prepared(prepared, tar, init_tar_T_ref, self.config)
+
+    def register_coarse(self, prepared, tar: Frame, init_tar_T_ref: torch.Tensor,
+                        factors: tuple[int, ...]) -> RegistrationResult:
+        """As :meth:`register`, through levels of block-averaged maps (``factors``, coarse
+        to fine) before the full-resolution one: a wider basin."""
+        wide = prepared.retry_levels(None, factors, self.config.jacobian)
+        return register_prepared(wide, tar, init_tar_T_ref, replace(self.config, coarse_factors=factors,
+                                                                    fallback_factors=()))
 
 
 @dataclass
@@ -145,6 +156,8 @@ class Tracker:
                 or config.keyframe_near_rounds < 1:
             raise ValueError(f"tracking.keyframe_near_rounds must be an integer >= 1, got {config.keyframe_near_rounds!r}")
         check_keep_contact(config.keep_contact_mm2)
+        if any(isinstance(f, bool) or not isinstance(f, int) or f < 2 for f in config.fallback_factors):
+            raise ValueError(f"tracking.fallback_factors must be integers >= 2, got {config.fallback_factors!r}")
         self.config = config
         self.registrar = registrar
         self.next_keyframe_id = 0
@@ -158,6 +171,7 @@ class Tracker:
         self.prev_in_contact = False
         self.implausible = 0  # registrations refused by the motion-continuity check
         self.moved_edges = 0  # keyframe edges replaced by a better-scoring nearby alignment
+        self.coarse_rescues = 0  # frames kept in their session by the coarse fallback
 
     # ----------------------------------------------------------------- helpers
     def _make_keyframe(self, frame: Frame, new_session: bool, prev_T_kf: torch.Tensor) -> Keyframe:
@@ -242,6 +256,9 @@ class Tracker:
             if self.prev_is_keyframe or self._continuous(frame, kf_T_frame):
                 return self._tracked(frame, res, kf_T_frame, [])
         if self.prev_is_keyframe:
+            res = self._coarse(frame)
+            if res is not None:
+                return self._tracked(frame, res, _kf_T_frame(res), [])
             if weak:
                 return self._lost(index, [])
             kf = self._new_session(frame)
@@ -255,6 +272,9 @@ class Tracker:
         self.kf_T_prev = _eye()
         res = self._register(frame, self._init_guess())
         if bool(res.ok):
+            return self._tracked(frame, res, _kf_T_frame(res), [prev_kf])
+        res = self._coarse(frame)
+        if res is not None:
             return self._tracked(frame, res, _kf_T_frame(res), [prev_kf])
         if weak:  # the session's tail is the keyframe just made
             return self._lost(index, [prev_kf])
@@ -275,6 +295,19 @@ class Tracker:
         self.prev_in_contact = False
         self.prev = None
         return TrackStep(index=index, in_contact=False, keyframes=emitted)
+
+    def _coarse(self, frame: Frame) -> RegistrationResult | None:
+        """The last chance before a new session: ``frame`` against the current keyframe
+        (the previous frame) through ``tracking.fallback_factors``; the result if it
+        verifies and stays within the speed limits, else ``None``."""
+        if not self.config.fallback_factors:
+            return None
+        init = self._init_guess()[None]
+        res = self.registrar.register_coarse(self.kf_prepared, frame, init, self.config.fallback_factors)[0]
+        if not bool(res.ok) or not self._continuous(frame, _kf_T_frame(res)):
+            return None
+        self.coarse_rescues += 1
+        return res
 
     def _continuous(self, frame: Frame, kf_T_frame: torch.Tensor) -> bool:
         """Whether the motion since the previous frame implied by ``kf_T_frame`` (from a

@@ -21,7 +21,7 @@ from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
 from tactile_slam.sim.episode import SimulationSettings, read_episode, simulate_episode
 
 STATS_KEYS = {"frames", "contact_frames", "keyframes", "sessions", "fps", "timing_ms", "frames_with_pose",
-              "implausible_motions"}
+              "implausible_motions", "moved_keyframe_edges", "coarse_rescues"}
 
 
 @pytest.fixture(scope="module")

@@ -15,7 +15,7 @@ import torch
 
 from tactile_slam.config import TrackingConfig
 from tactile_slam.geometry.frame import Frame
-from tactile_slam.registration.result import RegistrationResult
+from tactile_slam.registration.result import RegistrationError, RegistrationResult, pose_error
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
 from tactile_slam.tracking.tracker import Tracker
 
@@ -44,10 +44,13 @@ def frame(i: int, contact: bool | int = True, fps: float = 25.0) -> Frame:
 
 
 class ScriptedRegistrar:
-    def __init__(self, fails, slip=None):
+    def __init__(self, fails, slip=None, coarse_fails=None):
         self.fails = fails  # (ref_index, tar_index) -> bool
         self.slip = slip  # (ref_index, tar_index) -> (4, 4) error applied to the answer, or None
+        # the coarse solve: (ref_index, tar_index) -> bool; by default it fails where the fine one does
+        self.coarse_fails = coarse_fails or fails
         self.calls: list[tuple[int, int, torch.Tensor]] = []
+        self.coarse_calls: list[tuple[int, int, tuple[int, ...]]] = []
 
     def prepare(self, ref: Frame):
         return int(ref.index[0])
@@ -58,7 +61,14 @@ class ScriptedRegistrar:
         tar_index, b = int(tar.index[0]), len(tar)
         if b == 1:
             self.calls.append((ref_index, tar_index, init[0].clone()))
-        ok = not self.fails(ref_index, tar_index)
+        return self._answer(ref_index, tar_index, b, not self.fails(ref_index, tar_index))
+
+    def register_coarse(self, ref_index, tar: Frame, init, factors):
+        tar_index = int(tar.index[0])
+        self.coarse_calls.append((ref_index, tar_index, factors))
+        return self._answer(ref_index, tar_index, len(tar), not self.coarse_fails(ref_index, tar_index))
+
+    def _answer(self, ref_index, tar_index, b, ok):
         t = torch.linalg.inv(pose(tar_index)) @ pose(ref_index)
         if self.slip is not None and self.slip(ref_index, tar_index) is not None:
             t = self.slip(ref_index, tar_index) @ t
@@ -67,8 +77,8 @@ class ScriptedRegistrar:
                                   full(7, torch.int64), full(True, torch.bool), full(ok, torch.bool))
 
 
-def run(contacts, fails=lambda r, t: False, slip=None, fps=25.0, **cfg):
-    reg = ScriptedRegistrar(fails, slip)
+def run(contacts, fails=lambda r, t: False, slip=None, fps=25.0, coarse_fails=None, **cfg):
+    reg = ScriptedRegistrar(fails, slip, coarse_fails)
     tr = Tracker(TrackingConfig(**cfg), reg)
     steps = [tr.step(frame(i, c, fps)) for i, c in enumerate(contacts)]
     tail = tr.finish()
@@ -203,6 +213,55 @@ def test_frame_to_frame_baseline_keeps_contact_the_same_way():
         FrameToFrameTracker(reg, -1.0)
 
 
+@pytest.mark.parametrize("fails, emitted", [
+    (lambda r, t: (r, t) == (0, 1), []),  # right after the session's keyframe
+    (lambda r, t: t == 3, [2]),  # against the keyframe and, after the lazy rule, the previous frame
+])
+def test_coarse_fallback_keeps_the_session(fails, emitted):
+    """A frame about to start a new session is registered once more against the previous
+    frame through coarse levels; if that verifies, the session goes on."""
+    bad = 1 if not emitted else 3
+    steps, kfs, reg = run([True] * 6, fails=fails, coarse_fails=lambda r, t: False)
+    s = steps[bad]
+    assert not s.is_keyframe and s.session == 0 and [k.video_index for k in s.keyframes] == emitted
+    assert all(k.session == 0 for k in kfs) and reg.tracker.coarse_rescues == 1
+    assert reg.coarse_calls == [(bad - 1, bad, (4,))]
+    check_poses(steps, kfs)
+    steps, kfs, reg = run([True] * 6, fails=fails, fallback_factors=())  # off: a new session
+    assert steps[bad].is_keyframe and steps[bad].session == 1 and reg.coarse_calls == []
+
+
+def test_coarse_fallback_that_fails_or_jumps_starts_a_new_session():
+    steps, _, reg = run([True] * 5, fails=lambda r, t: (r, t) == (0, 1))  # the coarse solve fails too
+    assert steps[1].is_keyframe and steps[1].session == 1 and len(reg.coarse_calls) == 1
+    jump = _rz(20.0)  # a verified coarse result 20 deg away: beyond the speed limits
+    steps, _, reg = run([True] * 5, fails=lambda r, t: (r, t) == (0, 1), coarse_fails=lambda r, t: False,
+                        slip=lambda r, t: jump if (r, t) == (0, 1) else None)
+    assert steps[1].is_keyframe and steps[1].session == 1 and reg.tracker.coarse_rescues == 0
+    assert reg.tracker.implausible == 1
+
+
+def test_coarse_fallback_with_normalflow():
+    """The real registrar: a 1.3 mm step between frames is beyond the full-resolution
+    basin from the identity; the 4x coarse level recovers it."""
+    from tactile_slam.config import NormalFlowConfig
+    from tactile_slam.tracking.tracker import NormalFlowRegistrar
+
+    from ..registration.surfaces import bumpy, frames, rigid
+
+    truth = rigid(tx_mm=1.3)
+    f = frames(bumpy(1), [torch.eye(4, dtype=torch.float64), truth])
+    reg = NormalFlowRegistrar(NormalFlowConfig(), TrackingConfig())
+    prep = reg.prepare(f[0:1])
+    eye = torch.eye(4, dtype=torch.float64)[None]
+    assert not bool(reg.register(prep, f[1:2], eye).ok[0])
+    res = reg.register_coarse(prep, f[1:2], eye, (4,))
+    rot, trans = pose_error(res.tar_T_ref, truth[None])
+    assert bool(res.ok[0]) and float(rot) < 0.1 and float(trans) < 0.01, (float(rot), float(trans))
+    with pytest.raises(RegistrationError, match="divide the image size"):
+        reg.register_coarse(prep, f[1:2], eye, (7,))
+
+
 def test_constant_velocity_init_extrapolates():
     _, _, reg = run([True] * 4, init="constant_velocity")
     ref, tar, init = reg.calls[-1]  # frame 3 against keyframe 0
@@ -262,6 +321,9 @@ def test_bad_config_and_batch():
             Tracker(TrackingConfig(max_deg_per_s=bad), ScriptedRegistrar(lambda r, t: False))
         with pytest.raises(ValueError, match="max_mm_per_s"):
             Tracker(TrackingConfig(max_mm_per_s=bad), ScriptedRegistrar(lambda r, t: False))
+    for bad in ((1,), (2.5,), (True,)):
+        with pytest.raises(ValueError, match="fallback_factors"):
+            Tracker(TrackingConfig(fallback_factors=bad), ScriptedRegistrar(lambda r, t: False))
     for bad in (-1.0, float("nan"), float("inf"), True):
         with pytest.raises(ValueError, match="keep_contact_mm2"):
             Tracker(TrackingConfig(keep_contact_mm2=bad), ScriptedRegistrar(lambda r, t: False))
