@@ -17,6 +17,12 @@ from there (``keyframe_near_rounds`` batches at most). On ribs about as far apar
 frame's step, tracking slips to the neighbouring rib (or the next) and verifies there,
 with a lower CCS than at the truth (docs/benchmarks.md, "Keyframe edges").
 
+Sessions: a frame whose registration fails against both the keyframe and the previous
+frame is tried once more against the previous frame through ``tracking.fallback_factors``
+coarse levels before it starts a new session ("Coarse fallback"); a running session goes
+on through frames whose contact area is below the in-contact minimum but at least
+``tracking.keep_contact_mm2`` ("Contact hysteresis").
+
 A pure algorithm object: state plus :meth:`Tracker.step`. It never reads files or
 times itself; the pipeline does that.
 """
