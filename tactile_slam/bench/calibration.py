@@ -57,6 +57,7 @@ def run(args) -> Path:
         "angle_mae_rad": statistics.mean(e.angle_mae for e in ref_evals),
         "normal_mae_deg": statistics.mean(e.to_dict()["normal_mae_deg"] for e in ref_evals),
         "decode_frame": timing_stats(time_fn(lambda: GradientDecoder(ref, bg, 0.0)(frame), args.repeats, 2, sync)),
+        "by_slope_per_split": [e.to_dict()["by_slope"] for e in ref_evals],
     }}
     for spec in args.hidden.split(";"):
         hidden = tuple(int(h) for h in spec.split(","))
@@ -69,7 +70,7 @@ def run(args) -> Path:
             runs.append({"seed": seed, "train_s": res.seconds, "angle_mae_rad": ev.angle_mae,
                          "normal_mae_deg": ev.to_dict()["normal_mae_deg"],
                          "reference_angle_mae_rad": ref_evals[seed].angle_mae,
-                         "kept_seed": res.seed, "restarts": res.restarts})
+                         "kept_seed": res.seed, "restarts": res.restarts, "by_slope": ev.to_dict()["by_slope"]})
         decoder = GradientDecoder(res.model, bg, 0.0)
         results["mlp_5-" + "-".join(map(str, hidden)) + "-2"] = {
             "parameters": sum(p.numel() for p in res.model.parameters()),

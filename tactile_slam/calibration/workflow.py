@@ -14,7 +14,7 @@ import torch
 from tactile_slam.calibration.catalog import CalibrationSet, load_calibration_set
 from tactile_slam.calibration.colour_model import colour_samples, fit_colour_model
 from tactile_slam.calibration.dataset import build_dataset
-from tactile_slam.calibration.evaluate import evaluate_model, format_comparison
+from tactile_slam.calibration.evaluate import evaluate_model, format_comparison, format_slope_gain
 from tactile_slam.calibration.labels import PressLabel, label_presses, read_labels, write_labels, write_overlays
 from tactile_slam.calibration.model import load_model, save_model
 from tactile_slam.calibration.train import TrainConfig, train_model, write_training_report
@@ -104,7 +104,7 @@ def run_training(
     write_training_report(out, result, cfg, {"metrics": metrics})
     (out / "evaluation.json").write_text(json.dumps(summary, indent=2))
     if evals:
-        table = format_comparison(evals)
+        table = format_comparison(evals) + "\n\n" + format_slope_gain(evals)
         (out / "evaluation.txt").write_text(table + "\n")
         say(table)
     if colour_model:

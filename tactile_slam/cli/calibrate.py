@@ -11,7 +11,7 @@ from pathlib import Path
 import torch
 
 from tactile_slam.calibration.catalog import load_calibration_set
-from tactile_slam.calibration.evaluate import evaluate_model, format_comparison
+from tactile_slam.calibration.evaluate import evaluate_model, format_comparison, format_slope_gain
 from tactile_slam.calibration.model import load_model
 from tactile_slam.calibration.train import LOSSES, TrainConfig
 from tactile_slam.calibration.workflow import labels_for, run_labelling, run_training
@@ -75,6 +75,8 @@ def _evaluate(args) -> int:
                                                                          sensor.mm_per_px)
     print(f"evaluated on {which} ({len(reldirs)})")
     print(format_comparison(evals))
+    print()
+    print(format_slope_gain(evals))
     if args.json:
         Path(args.json).parent.mkdir(parents=True, exist_ok=True)
         Path(args.json).write_text(json.dumps({"presses": which, **{k: e.to_dict() for k, e in evals.items()}},

@@ -1,3 +1,4 @@
+import json
 import math
 
 import numpy as np
@@ -5,7 +6,7 @@ import pytest
 import torch
 
 from tactile_slam.calibration.catalog import CalibrationDataError, load_calibration_set
-from tactile_slam.calibration.evaluate import evaluate_model, format_comparison
+from tactile_slam.calibration.evaluate import SLOPE_EDGES, evaluate_model, format_comparison, format_slope_gain, slope_bins
 from tactile_slam.calibration.labels import PressLabel, label_presses
 from tactile_slam.calibration.model import GradientMLP
 
@@ -77,3 +78,36 @@ def test_reference_model_on_real_presses(mini_calib, mini_labels, reference_mode
     table = format_comparison({"ref": ev, "zero": evaluate_model(_zero_model(), mini_calib, mini_labels, reldirs,
                                                                  MM_PER_PX)})
     assert table.count("\n") == len(reldirs) + 2 and "ALL" in table
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_slope_bins_gain_and_counts(dtype):
+    """Decoded = 0.8 x true + a perpendicular part: the gain is 0.8 in every bin, the
+    counts are numpy's histogram of |true|, and an empty bin reports NaN."""
+    gen = torch.Generator().manual_seed(0)
+    true = (torch.rand(5000, 2, generator=gen, dtype=torch.float64) - 0.5) * 1.2  # |g| < 0.85
+    perp = torch.stack([-true[:, 1], true[:, 0]], 1) * 0.3
+    err = torch.rand(5000, generator=gen, dtype=torch.float64)
+    edges = (0.0, 0.2, 0.5, 1.0, 2.0)
+    bins = slope_bins((0.8 * true + perp).to(dtype), true.to(dtype), err.to(dtype), edges)
+    mag = true.norm(dim=1).numpy()
+    counts, _ = np.histogram(mag, bins=edges)
+    assert [b.n_px for b in bins] == counts.tolist() and counts[-1] == 0
+    for b in bins[:-1]:
+        assert b.gain == pytest.approx(0.8, abs=1e-5)
+        sel = (mag >= b.lo) & (mag < b.hi)
+        assert b.normal_mae == pytest.approx(float(err.numpy()[sel].mean()), rel=1e-5)
+    assert math.isnan(bins[-1].gain) and math.isnan(bins[-1].normal_mae)
+
+
+def test_zero_model_gain_is_zero_in_every_bin(synthetic_calib):
+    """The zero model decodes G = 0: gain 0 wherever there are pixels; the bins hold every
+    scored pixel; the text table has one row per bin and the JSON has no NaN or inf."""
+    calib = load_calibration_set(synthetic_calib)
+    labels = {lb.reldir: lb for lb in label_presses(calib, MM_PER_PX, 2.0)}
+    ev = evaluate_model(_zero_model(), calib, labels, ["6.310mm/0", "9.500mm/1"], MM_PER_PX)
+    assert sum(b.n_px for b in ev.by_slope) == sum(p.n_px for p in ev.per_press)
+    assert all(b.gain == 0.0 for b in ev.by_slope if b.n_px)
+    table = format_slope_gain({"zero": ev, "again": ev})
+    assert table.count("\n") == len(SLOPE_EDGES) and "0.6-inf" in table
+    json.dumps(ev.to_dict(), allow_nan=False)
