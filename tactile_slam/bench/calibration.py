@@ -35,16 +35,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loss", default=TrainConfig.loss, choices=sorted(LOSSES))
     p.add_argument("--restarts", type=int, default=TrainConfig.restarts,
                    help="models per split (seeds seed, seed+1, ...); the best fit to the training presses is kept")
-    p.add_argument("--balance", type=float, default=TrainConfig.balance,
-                   help="weight each sample's loss by n**-balance, n the samples of its slope")
     add_device_argument(p)
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--repeats", type=int, default=20, help="timed full-frame decodes per model")
 
 
 def run(args) -> Path:
-    TrainConfig(epochs=args.epochs, lr_step=args.lr_step, loss=args.loss, restarts=args.restarts,
-                balance=args.balance).validate()
+    TrainConfig(epochs=args.epochs, lr_step=args.lr_step, loss=args.loss, restarts=args.restarts).validate()
     torch.set_num_threads(args.threads)
     sensor = load_config("gelsight_mini").sensor
     data_dir = Path(args.data)
@@ -67,7 +64,7 @@ def run(args) -> Path:
         runs = []
         for seed, data in enumerate(splits):
             cfg = TrainConfig(hidden=hidden, epochs=args.epochs, lr_step=args.lr_step, loss=args.loss, seed=seed,
-                              device=args.device, restarts=args.restarts, balance=args.balance)
+                              device=args.device, restarts=args.restarts)
             res = train_model(data.train, cfg)
             ev = evaluate_model(res.model, calib, labels, data.split["test"], sensor.mm_per_px)
             runs.append({"seed": seed, "train_s": res.seconds, "angle_mae_rad": ev.angle_mae,
@@ -85,6 +82,6 @@ def run(args) -> Path:
             "runs": runs,
         }
     results["settings"] = {"epochs": args.epochs, "lr_step": args.lr_step, "loss": args.loss, "seeds": args.seeds,
-                           "restarts": args.restarts, "balance": args.balance,
+                           "restarts": args.restarts,
                            "device": args.device, "threads": args.threads}
     return write_json(args.out, "calibration", results)

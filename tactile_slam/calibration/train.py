@@ -28,39 +28,16 @@ from tactile_slam.calibration.model import GradientMLP
 
 LOSSES: dict[str, Callable[[], nn.Module]] = {
     "l1": nn.L1Loss,
-    "smooth_l1": lambda **kw: nn.SmoothL1Loss(beta=0.05, **kw),
+    "smooth_l1": lambda: nn.SmoothL1Loss(beta=0.05),
     "mse": nn.MSELoss,
 }
-
-
-BALANCE_BIN = 0.05  # width of the slope-magnitude bins of TrainConfig.balance
-
-
-def balance_weights(angles: torch.Tensor, balance: float, width: float = BALANCE_BIN) -> torch.Tensor:
-    """Per-sample loss weights ``n ** -balance``, normalised to mean 1, ``n`` the number of
-    samples in the sample's bin of slope magnitude ``|tan(angles)|``.
-
-    Args:
-        angles: ``(N, 2)`` target angles (rad).
-        balance: exponent in [0, 1].
-        width: bin width of the slope magnitude.
-
-    Returns:
-        ``(N,)`` float32 weights.
-    """
-    bins = (torch.tan(angles.double()).norm(dim=1) / width).long()
-    w = torch.bincount(bins).double()[bins] ** -balance
-    return (w / w.mean()).float()
 
 
 @dataclass
 class TrainConfig:
     """Training recipe. ``hidden``: MLP hidden sizes; ``loss``: one of :data:`LOSSES`.
     ``restarts``: models trained from seeds ``seed, seed + 1, ...``; the one that fits
-    the training samples best (angle MAE) is kept (docs/calibration.md, "Restarts").
-    ``balance``: each sample's loss is weighted by ``n ** -balance``, ``n`` the number of
-    training samples whose slope magnitude shares its :data:`BALANCE_BIN` bin (0: plain
-    mean; 1: every slope bin counts the same; docs/calibration.md, "Balanced training")."""
+    the training samples best (angle MAE) is kept (docs/calibration.md, "Restarts")."""
 
     hidden: tuple[int, ...] = (32, 32, 32)
     epochs: int = 120
@@ -72,7 +49,6 @@ class TrainConfig:
     seed: int = 0
     device: str = "cpu"
     restarts: int = 4
-    balance: float = 0.0
 
     def validate(self) -> None:
         if self.loss not in LOSSES:
@@ -85,8 +61,6 @@ class TrainConfig:
             raise ValueError(f"hidden sizes must be positive, got {self.hidden}")
         if isinstance(self.restarts, bool) or not isinstance(self.restarts, int) or self.restarts < 1:
             raise ValueError(f"restarts must be a positive integer, got {self.restarts!r}")
-        if isinstance(self.balance, bool) or not (0.0 <= self.balance <= 1.0):
-            raise ValueError(f"balance must be a number in [0, 1], got {self.balance!r}")
 
 
 @dataclass
@@ -159,9 +133,6 @@ def _train_once(train: Samples, cfg: TrainConfig, seed: int, test: Samples | Non
     opt = torch.optim.Adam(model.parameters(), lr=cfg.lr)
     sched = torch.optim.lr_scheduler.StepLR(opt, step_size=cfg.lr_step, gamma=cfg.lr_gamma)
     loss_fn = LOSSES[cfg.loss]()
-    weights = balance_weights(train.angles, cfg.balance).to(device) if cfg.balance else None
-    if weights is not None:
-        loss_fn = LOSSES[cfg.loss](reduction="none")
     gen = torch.Generator().manual_seed(seed)
     n = feats.shape[0]
     result = TrainResult(model, seed=seed)
@@ -173,9 +144,6 @@ def _train_once(train: Samples, cfg: TrainConfig, seed: int, test: Samples | Non
         for i in range(0, n, cfg.batch_size):
             idx = perm[i:i + cfg.batch_size]
             loss = loss_fn(model(feats[idx]), targets[idx])
-            if weights is not None:
-                w = weights[idx]
-                loss = (loss.mean(1) * w).sum() / w.sum()
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()

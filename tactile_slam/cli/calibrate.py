@@ -45,7 +45,6 @@ def _train(args) -> int:
         hidden=tuple(int(h) for h in args.hidden.split(",")), epochs=args.epochs, batch_size=args.batch_size,
         lr=args.lr, lr_step=args.lr_step, loss=args.loss, seed=args.seed, device=args.device,
         restarts=args.restarts,
-        balance=args.balance,
     )
     out = Path(args.out) if args.out else Path(args.calib_dir) / "model"
     summary = run_training(args.calib_dir, out, sensor, cfg, args.labels, args.test_fraction, args.reference,
@@ -125,8 +124,6 @@ def register(sub) -> None:
     tp.add_argument("--seed", type=int, default=0)
     tp.add_argument("--restarts", type=int, default=TrainConfig.restarts,
                     help="models trained from seeds seed, seed+1, ...; the best fit to the training presses is kept")
-    tp.add_argument("--balance", type=float, default=TrainConfig.balance,
-                    help="weight each sample's loss by n**-balance, n the samples of its slope (0: plain mean)")
     tp.add_argument("--test-fraction", type=float, default=0.2)
     add_device_argument(tp)
     tp.add_argument("--reference", help="a reference model to evaluate beside the new one")

@@ -1,7 +1,5 @@
 import json
 
-import pytest
-
 from tactile_slam.calibration.labels import read_labels
 from tactile_slam.calibration.model import load_model
 from tactile_slam.cli.main import main
@@ -25,7 +23,6 @@ def test_label_then_train_then_evaluate(synthetic_calib, tmp_path, capsys):
     assert "heldout_angle_mae_rad" in meta["metrics"]
     assert [r["seed"] for r in meta["restarts"]] == [0, 1] and meta["model_seed"] in (0, 1)
     assert meta["train_config"]["restarts"] == 2
-    assert "true |g|" in (out / "m" / "evaluation.txt").read_text()
     js = tmp_path / "ev.json"
     assert main(["calibrate", "evaluate", str(synthetic_calib), "--model", str(out / "m" / "model.pt"),
                  "--json", str(js)]) == 0
@@ -50,11 +47,9 @@ def test_bad_folder_is_a_clear_error(tmp_path, capsys):
     assert "catalog not found" in capsys.readouterr().err
 
 
-@pytest.mark.parametrize("flag, value, message", [("--restarts", "0", "restarts must be a positive integer"),
-                                                   ("--balance", "2", "balance must be a number in [0, 1]")])
-def test_bad_training_values_fail_before_labelling(synthetic_calib, tmp_path, capsys, flag, value, message):
-    assert main(["calibrate", "train", str(synthetic_calib), "--out", str(tmp_path / "m"), flag, value]) == 2
-    assert message in capsys.readouterr().err
+def test_bad_restarts_fail_before_labelling(synthetic_calib, tmp_path, capsys):
+    assert main(["calibrate", "train", str(synthetic_calib), "--out", str(tmp_path / "m"), "--restarts", "0"]) == 2
+    assert "restarts must be a positive integer" in capsys.readouterr().err
     assert not (tmp_path / "m").exists()
 
 

@@ -1,5 +1,4 @@
 import json
-import math
 from dataclasses import replace
 
 import pytest
@@ -8,9 +7,7 @@ import torch
 from tactile_slam.calibration.dataset import Samples, press_samples
 from tactile_slam.calibration.evaluate import evaluate_model
 from tactile_slam.calibration.model import GradientMLP
-from tactile_slam.calibration.train import (
-    BALANCE_BIN, TrainConfig, angle_mae, balance_weights, train_model, write_training_report,
-)
+from tactile_slam.calibration.train import TrainConfig, angle_mae, train_model, write_training_report
 
 from .conftest import MM_PER_PX
 
@@ -78,19 +75,6 @@ class TestTrainModel:
         res = train_model(_toy_samples(), TrainConfig(epochs=8, batch_size=256, loss=loss, lr_step=4))
         assert angle_mae(res.model, _toy_samples(500, 1)) < 0.03
 
-    @pytest.mark.parametrize("loss", ["l1", "smooth_l1", "mse"])
-    def test_balanced_losses_learn(self, loss):
-        res = train_model(_toy_samples(), TrainConfig(epochs=8, batch_size=256, loss=loss, lr_step=4, balance=0.5,
-                                                      restarts=1))
-        assert angle_mae(res.model, _toy_samples(500, 1)) < 0.03
-
-    def test_balance_changes_the_model_and_zero_is_the_plain_mean(self):
-        data, cfg = _toy_samples(1500), TrainConfig(hidden=(8,), epochs=2, batch_size=512, restarts=1)
-        plain, zero = train_model(data, cfg).model, train_model(data, replace(cfg, balance=0.0)).model
-        half = train_model(data, replace(cfg, balance=0.5)).model
-        assert torch.equal(plain.fc1.weight, zero.fc1.weight)
-        assert not torch.allclose(plain.fc1.weight, half.fc1.weight)
-
     def test_device(self, device):
         res = train_model(_toy_samples(600), TrainConfig(epochs=1, batch_size=256, device=str(device)))
         assert next(res.model.parameters()).device.type == device.type
@@ -99,9 +83,7 @@ class TestTrainModel:
         "cfg, match",
         [(TrainConfig(loss="huber2"), "unknown loss"), (TrainConfig(epochs=0), "positive"),
          (TrainConfig(hidden=()), "hidden"), (TrainConfig(restarts=0), "restarts"),
-         (TrainConfig(restarts=1.5), "restarts"), (TrainConfig(restarts=True), "restarts"),
-         (TrainConfig(balance=-0.1), "balance"), (TrainConfig(balance=1.5), "balance"),
-         (TrainConfig(balance=math.nan), "balance"), (TrainConfig(balance=True), "balance")],
+         (TrainConfig(restarts=1.5), "restarts"), (TrainConfig(restarts=True), "restarts")],
     )
     def test_bad_config(self, cfg, match):
         with pytest.raises(ValueError, match=match):
@@ -138,21 +120,3 @@ def test_small_real_subset_converges(mini_calib, mini_labels, reference_model):
     ev_zero = evaluate_model(zero, mini_calib, mini_labels, test_dirs, MM_PER_PX)
     assert ev_zero.angle_mae > 0.15
     assert ev.angle_mae < 0.05
-
-
-@pytest.mark.parametrize("balance", [0.0, 0.5, 1.0])
-def test_balance_weights_against_bin_counts(balance):
-    """Weights are n ** -balance normalised to mean 1, n the samples sharing the slope bin
-    (counted here with numpy); with balance 1 every occupied bin weighs the same."""
-    angles = _toy_samples(3000).angles.double()
-    w = balance_weights(angles, balance)
-    assert w.shape == (3000,) and w.dtype == torch.float32
-    slope = torch.tan(angles).norm(dim=1).numpy()
-    b = (slope / BALANCE_BIN).astype(int)
-    counts = {k: (b == k).sum() for k in set(b.tolist())}
-    raw = torch.tensor([counts[k] ** -balance for k in b.tolist()], dtype=torch.float64)
-    torch.testing.assert_close(w.double(), raw / raw.mean(), rtol=1e-6, atol=0)
-    assert float(w.mean()) == pytest.approx(1.0, rel=1e-6)
-    if balance == 1.0:
-        totals = [float(w[torch.from_numpy(b == k)].sum()) for k in counts]
-        assert max(totals) == pytest.approx(min(totals), rel=1e-5)
