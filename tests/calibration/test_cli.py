@@ -23,6 +23,7 @@ def test_label_then_train_then_evaluate(synthetic_calib, tmp_path, capsys):
     assert "heldout_angle_mae_rad" in meta["metrics"]
     assert [r["seed"] for r in meta["restarts"]] == [0, 1] and meta["model_seed"] in (0, 1)
     assert meta["train_config"]["restarts"] == 2
+    assert "true |g|" in (out / "m" / "evaluation.txt").read_text()  # the gain-by-slope table
     js = tmp_path / "ev.json"
     assert main(["calibrate", "evaluate", str(synthetic_calib), "--model", str(out / "m" / "model.pt"),
                  "--json", str(js)]) == 0
@@ -30,7 +31,8 @@ def test_label_then_train_then_evaluate(synthetic_calib, tmp_path, capsys):
     assert doc["presses"] == "the model's held-out presses"
     assert main(["calibrate", "evaluate", str(synthetic_calib), "--model", str(out / "m" / "model.pt"),
                  "--presses", "all", "--json", str(js)]) == 0
-    assert json.loads(js.read_text())["model.pt"]["n_presses"] == 6
+    doc = json.loads(js.read_text())["model.pt"]
+    assert doc["n_presses"] == 6 and sum(b["n_px"] for b in doc["by_slope"]) == doc["n_px"]
 
 
 def test_evaluate_reference_on_real_data(mini_data, tmp_path):

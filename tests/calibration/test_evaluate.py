@@ -6,7 +6,9 @@ import pytest
 import torch
 
 from tactile_slam.calibration.catalog import CalibrationDataError, load_calibration_set
-from tactile_slam.calibration.evaluate import SLOPE_EDGES, evaluate_model, format_comparison, format_slope_gain, slope_bins
+from tactile_slam.calibration.evaluate import (
+    SLOPE_EDGES, evaluate_model, format_comparison, format_slope_gain, slope_bins,
+)
 from tactile_slam.calibration.labels import PressLabel, label_presses
 from tactile_slam.calibration.model import GradientMLP
 
