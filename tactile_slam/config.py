@@ -219,6 +219,12 @@ class TrackingConfig:
     # kept if that verifies within the speed limits; 4 widens NormalFlow's basin about 4x,
     # to more than a frame's motion limit (1 mm = 16 px at 25 fps); () disables
     fallback_factors: tuple[int, ...] = (4,)
+    # keyframe edge direction (docs/benchmarks.md, "Keyframe edge direction"): a new
+    # keyframe's pose in the previous one comes from tracking ("forward", the reference
+    # rule), or from registering the previous keyframe against the new one, started from
+    # the tracked pose ("reverse"), or the midpoint of the two ("midpoint"); a reverse
+    # registration that fails keeps the tracked pose
+    keyframe_edge: str = "forward"
 
 
 @dataclass

@@ -43,6 +43,7 @@ from tactile_slam.registration.result import RegistrationResult, pose_error
 from tactile_slam.tracking.keyframe import Keyframe
 
 INIT_MODES = ("constant_position", "constant_velocity")
+EDGE_MODES = ("forward", "reverse", "midpoint")
 
 
 class Registrar(Protocol):
@@ -150,6 +151,8 @@ class Tracker:
     def __init__(self, config: TrackingConfig, registrar: Registrar):
         if config.init not in INIT_MODES:
             raise ValueError(f"tracking.init must be one of {INIT_MODES}, got {config.init!r}")
+        if config.keyframe_edge not in EDGE_MODES:
+            raise ValueError(f"tracking.keyframe_edge must be one of {EDGE_MODES}, got {config.keyframe_edge!r}")
         for name in ("max_deg_per_s", "max_mm_per_s", "keyframe_near_mm"):
             v = getattr(config, name)
             if v is not None and not (math.isfinite(v) and v > 0):
@@ -183,14 +186,30 @@ class Tracker:
     def _make_keyframe(self, frame: Frame, new_session: bool, prev_T_kf: torch.Tensor) -> Keyframe:
         if not new_session and self.config.keyframe_near_mm is not None:
             prev_T_kf = self._best_nearby(frame, prev_T_kf)
+        prepared = self.registrar.prepare(frame)
+        if not new_session and self.config.keyframe_edge != "forward":
+            prev_T_kf = self._reverse_edge(prepared, prev_T_kf)
         if new_session:
             self.next_session += 1
         session = self.next_session - 1
         kf = Keyframe(self.next_keyframe_id, session, frame, new_session, prev_T_kf.clone())
         self.next_keyframe_id += 1
         self.kf = kf
-        self.kf_prepared = self.registrar.prepare(frame)
+        self.kf_prepared = prepared
         return kf
+
+    def _reverse_edge(self, prepared: Any, prev_T_kf: torch.Tensor) -> torch.Tensor:
+        """The edge ``prev_T_kf`` (new keyframe in the current one) measured the other way
+        round: the current keyframe registered against the new one (``prepared``), started
+        from the tracked edge. ``"reverse"`` returns that result, ``"midpoint"`` the
+        geodesic midpoint of the two; a failed registration returns ``prev_T_kf``."""
+        res = self.registrar.register(prepared, self.kf.frame, prev_T_kf[None])[0]
+        if not bool(res.ok):
+            return prev_T_kf
+        back = res.tar_T_ref[0].to(torch.float64).cpu()
+        if self.config.keyframe_edge == "reverse":
+            return back
+        return prev_T_kf @ se3.exp(0.5 * se3.log(torch.linalg.inv(prev_T_kf) @ back))
 
     def _best_nearby(self, frame: Frame, prev_T_kf: torch.Tensor) -> torch.Tensor:
         """``frame``'s pose in the current keyframe, registered again from ``prev_T_kf`` and

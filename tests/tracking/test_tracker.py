@@ -307,6 +307,28 @@ def test_speed_limits_scale_with_the_frame_interval_and_can_be_disabled():
     assert reg.tracker.implausible == 1 and 3 in [k.video_index for k in kfs]
 
 
+@pytest.mark.parametrize("mode, error_deg", [("forward", 1.0), ("reverse", 0.0), ("midpoint", 0.5)])
+def test_keyframe_edge_direction(mode, error_deg):
+    # tracking frame 3 from keyframe 0 converges 1 deg off; frame 4 fails against keyframe 0,
+    # so frame 3 becomes the keyframe; registering keyframe 0 against frame 3 is exact
+    steps, kfs, reg = run([True] * 6, fails=lambda r, t: (r, t) == (0, 4),
+                          slip=lambda r, t: _rz(1.0) if (r, t) == (0, 3) else None, keyframe_edge=mode)
+    assert [k.video_index for k in kfs] == [0, 3, 5]
+    true = torch.linalg.inv(pose(0)) @ pose(3)
+    rot, trans = pose_error(kfs[1].prev_T_kf[None], true[None])
+    assert float(rot) == pytest.approx(error_deg, abs=1e-6)
+    # the frames tracked from keyframe 3 are exact, so their error is the edge's alone
+    est = kfs[1].prev_T_kf @ steps[4].kf_T_frame
+    assert float(pose_error(est[None], (torch.linalg.inv(pose(0)) @ pose(4))[None])[0]) == pytest.approx(error_deg, abs=1e-6)
+
+
+def test_failed_reverse_edge_keeps_the_tracked_edge():
+    _, kfs, _ = run([True] * 6, fails=lambda r, t: (r, t) in ((0, 4), (3, 0)),
+                    slip=lambda r, t: _rz(1.0) if (r, t) == (0, 3) else None, keyframe_edge="reverse")
+    true = torch.linalg.inv(pose(0)) @ pose(3)
+    assert float(pose_error(kfs[1].prev_T_kf[None], true[None])[0]) == pytest.approx(1.0, abs=1e-6)
+
+
 @pytest.mark.parametrize("fps", [float("inf"), float("nan")])  # timestamps all 0 / all NaN (unknown)
 def test_frames_without_timestamps_are_not_speed_checked(fps):
     _, kfs, reg = run([True] * 7, slip=_slip_at_4, fps=fps)
@@ -316,6 +338,8 @@ def test_frames_without_timestamps_are_not_speed_checked(fps):
 def test_bad_config_and_batch():
     with pytest.raises(ValueError, match="tracking.init"):
         Tracker(TrackingConfig(init="magic"), ScriptedRegistrar(lambda r, t: False))
+    with pytest.raises(ValueError, match="tracking.keyframe_edge"):
+        Tracker(TrackingConfig(keyframe_edge="both"), ScriptedRegistrar(lambda r, t: False))
     for bad in (0.0, -5.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="max_deg_per_s"):
             Tracker(TrackingConfig(max_deg_per_s=bad), ScriptedRegistrar(lambda r, t: False))
