@@ -16,6 +16,9 @@ registered again, in one batch, from starts shifted by ``tracking.keyframe_near_
 from there (``keyframe_near_rounds`` batches at most). On ribs about as far apart as a
 frame's step, tracking slips to the neighbouring rib (or the next) and verifies there,
 with a lower CCS than at the truth (docs/benchmarks.md, "Keyframe edges").
+With ``tracking.keyframe_edge`` ``"reverse"`` or ``"midpoint"`` the edge is then measured
+the other way round too, the previous keyframe against the new one, and that result or
+the midpoint of the two directions replaces it ("Keyframe edge direction").
 
 Sessions: a frame whose registration fails against both the keyframe and the previous
 frame is tried once more against the previous frame through ``tracking.fallback_factors``
