@@ -293,13 +293,28 @@ def _inside(grid: torch.Tensor) -> torch.Tensor:
 
 
 def _solve(ata: np.ndarray, atb: np.ndarray, ridge: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
-    """Damped 5x5 normal equations ``(A + ridge + damping diag(A)) x = b`` by Cholesky
-    (LAPACK ``dposv``; Marquardt scaling; the tiny ``ridge`` keeps unobservable
-    directions at 0 instead of NaN). ``(b, 5, 5)``, ``(b, 5)`` -> ``(delta (b, 5),
-    solved (b,) bool)``; an unsolvable pair gets a zero step and ``solved = False``."""
+    """Damped 5x5 normal equations ``(A + ridge + damping diag(A)) x = b`` of all pairs in
+    one batched LAPACK call (Marquardt scaling; the tiny ``ridge`` keeps unobservable
+    directions at 0 instead of NaN, and makes the matrix positive definite whenever it
+    is finite and not all zero). A singular pair makes the batched call raise; then each
+    pair is solved by Cholesky (:func:`_solve_each`). ``(b, 5, 5)``, ``(b, 5)`` ->
+    ``(delta (b, 5), solved (b,) bool)``; an unsolvable pair gets a zero step and
+    ``solved = False``."""
     damped = ata + ridge
     if damping > 0:
         damped = damped + damping * ata * np.eye(5)
+    try:
+        delta = np.linalg.solve(damped, atb[..., None])[..., 0]
+    except np.linalg.LinAlgError:
+        return _solve_each(damped, atb)
+    solved = np.isfinite(delta).all(1)
+    return np.where(solved[:, None], delta, 0.0), solved
+
+
+def _solve_each(damped: np.ndarray, atb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`_solve` pair by pair by Cholesky (LAPACK ``dposv``), for a batch holding a
+    singular pair (a flat contact's all-zero normal equations). ``(b, 5, 5)``, ``(b, 5)``
+    -> ``(delta (b, 5), solved (b,) bool)``."""
     delta = np.zeros_like(atb)
     solved = np.zeros(len(atb), dtype=bool)
     for i in range(len(atb)):
