@@ -164,11 +164,6 @@ class BlockCholesky:
         self._L11: list[torch.Tensor] = []
         self._L21: list[torch.Tensor] = []
 
-    @property
-    def max_front(self) -> int:
-        """Largest front, in nodes (the cost driver: O(b^3 m^3))."""
-        return max((fr.piv.size + fr.bnd.size for fr in self.fronts), default=0)
-
     def factor(self, blocks: np.ndarray) -> None:
         """Factorise the matrix whose stored blocks are ``blocks`` ``(S, b, b)`` (slot order).
 

@@ -179,10 +179,6 @@ class PoseGraph:
         """Overwrite the poses at ``rows`` ``(K,)`` (graph rows, not ids) with ``(K, 4, 4)``."""
         self._poses.data[rows] = start_T_kf.reshape(-1, 16)
 
-    def set_pose(self, node_id: int, start_T_kf: torch.Tensor) -> None:
-        """Overwrite one node's ``start_T_kf`` ``(4, 4)``."""
-        self.set_poses(self.rows(node_id), se3.check_pose(start_T_kf)[None])
-
     # ------------------------------------------------------------------ factors
     def add_prior(self, node_id: int, start_T_kf: torch.Tensor | None = None,
                   sigma: Sequence[float] | torch.Tensor | None = None) -> None:
