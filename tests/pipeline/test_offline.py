@@ -170,8 +170,11 @@ def test_method_validation(tmp_path):
             OfflinePipeline(iter([]), Config(), tmp_path, RunOptions(device="cuda"))
 
 
-def test_scan_folder_frame_indexing(tracking_episode, tmp_path):
-    """A recorded scan: rows of poses.npy are video indices; the 10 background frames are NaN."""
+def test_scan_folder_skips_its_background_frames(tracking_episode, tmp_path):
+    """A recorded scan's frames keep their video indices; the 10 contact-free leading
+    frames become the background and are not yielded (``poses.npy`` rows of a scan:
+    ``tests/pipeline/test_real_presses.py``)."""
+    from tactile_slam.io.scan import Scan
     from tactile_slam.io.video import write_video
 
     grads, contact = read_episode(tracking_episode).gradients()
@@ -182,12 +185,24 @@ def test_scan_folder_frame_indexing(tracking_episode, tmp_path):
     scan = tmp_path / "scan"
     scan.mkdir()
     write_video(scan / "gelsight.avi", np.stack(imgs), 25)
-    cv2.imwrite(str(tmp_path / "unused.png"), bg)
-    from tactile_slam.io.scan import Scan
-
     s = Scan(scan)
     assert s.start == 10 and len(s) == 5
     assert [f.index for f in s] == list(range(10, 15))
+
+
+def test_no_mesh_computes_no_reconstruction_and_gradients_need_no_model(tracking_episode, tmp_path):
+    """``--no-mesh`` (``RunOptions.mesh=False``) writes no mesh files and no reconstruction
+    statistics; gradient-level input never loads the calibration model, so a missing
+    model file does not matter."""
+    cfg = Config()
+    cfg.sensor.model_path = str(tmp_path / "no_such_model.pt")
+    src = GradientSequence(tracking_episode / "gt_gradients.npz", fps=25)
+    res = OfflinePipeline(src, cfg, tmp_path / "out", RunOptions(method="gelslam", progress=False, mesh=False)).run()
+    assert res.stats["completed"] and res.stats["keyframes"] > 0
+    written = {p.name for p in (tmp_path / "out").iterdir()}
+    assert {"poses.npy", "stats.json", "loops.json"} <= written
+    assert not written & {"mesh_fused.ply", "mesh.ply", "mesh.png"}
+    assert "reconstruction" not in res.stats
 
 
 def test_eval_scores_accepted_loops(contact_loss_episode, tmp_path):
