@@ -334,6 +334,8 @@ class ReconConfig:
     poisson_max_points: int = 500_000
     trim_density_quantile: float = 0.02
     trim_distance_mm: float = 0.5
+    # also mesh every group besides the main one, each in its own frame (groups/group_<label>/)
+    all_groups: bool = False
 
 
 @dataclass

@@ -212,3 +212,32 @@ def test_eval_scores_accepted_loops(contact_loss_episode, tmp_path):
     loops = json.loads((tmp_path / "metrics.json").read_text())["loops"]
     assert loops["reported"] >= 1 and loops["precision"] == 1.0
     assert loops["trans_err_mm"] < 0.3 and loops["rot_err_deg"] < 1.0
+
+
+def test_all_groups_meshes_each_group_in_its_own_frame(contact_loss_episode, tmp_path):
+    """``recon.all_groups``: besides the main group's mesh, every other group is meshed
+    under ``groups/group_<label>/`` in the frame of its own first contact frame (that of
+    ``poses_by_group.npy``): brought to the object by that frame's ground truth, it lies
+    on the object."""
+    cfg = Config()
+    cfg.recon.all_groups = True
+    src = GradientSequence(contact_loss_episode / "gt_gradients.npz", fps=25)
+    res = OfflinePipeline(src, cfg, tmp_path, RunOptions(method="nf-kf", progress=False, mesh=True)).run()
+    others = res.stats["reconstruction"]["other_groups"]
+    assert len(others) == res.stats["groups"] - 1 >= 1
+    ep = read_episode(contact_loss_episode)
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(ep.mesh()))
+    meshed = 0
+    for label, stats in others.items():
+        folder = tmp_path / "groups" / f"group_{label}"
+        if "skipped" in stats:  # fewer than two contact keyframes: nothing written
+            assert not folder.exists()
+            continue
+        meshed += 1
+        assert (folder / "mesh.ply").is_file() and not (folder / "mesh.png").exists()
+        v = np.asarray(o3d.io.read_triangle_mesh(str(folder / "mesh_fused.ply")).vertices)
+        T = ep.object_T_sensor[int(np.nonzero(res.frame_group == int(label))[0][0])]
+        dist = scene.compute_distance(o3d.core.Tensor((v @ T[:3, :3].T + T[:3, 3]).astype(np.float32))).numpy()
+        assert np.median(dist) < 0.05e-3, (label, np.median(dist))
+    assert meshed >= 1
