@@ -71,6 +71,7 @@ def test_tracking_episode_accuracy(tracking_episode, tmp_path, method):
     tum = np.loadtxt(tmp_path / "trajectory_tum.txt")
     assert len(tum) == has.sum()
     np.testing.assert_allclose(tum[:, 1:4], res.poses[has, :3, 3], atol=1e-9)
+    np.testing.assert_allclose(tum[:, 0], np.flatnonzero(has) / 25.0, atol=1e-9)  # t = video index / fps
     if method == "gelslam":
         # the fused surface, brought into the object frame through the ground-truth pose
         # of the first contact frame, lies on the object
@@ -103,6 +104,9 @@ def test_contact_loss_sessions_merge_with_loops(contact_loss_episode, tmp_path):
     assert max(mae["rx_deg"], mae["ry_deg"], mae["rz_deg"]) < 1.0, mae
     loops = json.loads((tmp_path / "full" / "loops.json").read_text())
     assert len(loops) == full.stats["loops"]
+    # the paper's statistics: every loop was a candidate, coverage keyframes are keyframes
+    assert full.stats["loop_candidates"] >= full.stats["loops"]
+    assert 1 <= full.stats["coverage_keyframes"] <= full.stats["keyframes"]
     assert (tmp_path / "full" / "pose_graph.g2o").is_file() and (tmp_path / "full" / "pose_graph.png").is_file()
 
 
