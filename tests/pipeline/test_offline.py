@@ -245,3 +245,21 @@ def test_all_groups_meshes_each_group_in_its_own_frame(contact_loss_episode, tmp
         dist = scene.compute_distance(o3d.core.Tensor((v @ T[:3, :3].T + T[:3, 3]).astype(np.float32))).numpy()
         assert np.median(dist) < 0.05e-3, (label, np.median(dist))
     assert meshed >= 1
+
+
+def test_cli_run_with_a_config_file(tracking_episode, tmp_path, capsys):
+    """``tactile-slam run --config``: the file's settings reach the run (the resolved
+    ``config.yaml`` holds them); a bad value exits 2 and writes no output folder."""
+    good = tmp_path / "good.yaml"
+    good.write_text("tracking:\n  keyframe_edge: midpoint\nrecon:\n  all_groups: true\n")
+    out = tmp_path / "run"
+    assert main(["run", str(tracking_episode / "gt_gradients.npz"), "--out", str(out), "--config", str(good),
+                 "--method", "nf-kf", "--no-mesh"]) == 0
+    resolved = Config.from_yaml(out / "config.yaml")
+    assert resolved.tracking.keyframe_edge == "midpoint" and resolved.recon.all_groups is True
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("tracking:\n  keyframe_edge: both\n")
+    assert main(["run", str(tracking_episode / "gt_gradients.npz"), "--out", str(tmp_path / "bad_run"),
+                 "--config", str(bad)]) == 2
+    assert "keyframe_edge" in capsys.readouterr().err
+    assert not (tmp_path / "bad_run").exists()
