@@ -283,37 +283,31 @@ class OfflinePipeline:
         """Mesh of the main group in the frame of its first contact frame (the frame of
         ``poses.npy``); with ``recon.all_groups`` also every other group, in the frame of
         its own first contact frame (that of ``poses_by_group.npy``), under
-        ``groups/group_<label>/``. A group that cannot be meshed says why in ``stats.json``."""
+        ``groups/group_<label>/`` (no rendering). A group that cannot be meshed says why
+        in ``stats.json``."""
+
+        def mesh_group(label: int, out_dir: Path, render: bool) -> dict:
+            first = int(np.nonzero(frame_group == label)[0][0])
+            try:
+                res = reconstruct(keyframes, start_T_kf, self.config, group_of_kf, group=label)
+            except ReconError as exc:
+                print(f"reconstruction of group {label} skipped: {exc}")
+                return {"skipped": str(exc)}
+            first_T_start = torch.linalg.inv(start_T_kf[int(kf_of[first])] @ torch.as_tensor(kf_T[first]))
+            res.fused_mesh = transform_mesh(res.fused_mesh, first_T_start)
+            if res.mesh is not None:
+                res.mesh = transform_mesh(res.mesh, first_T_start)
+            out_dir.mkdir(parents=True, exist_ok=True)
+            res.save(out_dir, render=render)
+            return {k: v for k, v in res.stats.items() if isinstance(v, (int, float, str, bool))}
+
         label = main_group(frame_group)
-        stats = self._mesh_group(label, self.out_dir, True, keyframes, start_T_kf, group_of_kf, kf_of, kf_T,
-                                 frame_group)
+        stats = mesh_group(label, self.out_dir, True)
         if self.config.recon.all_groups:
             others = [int(g) for g in np.unique(frame_group[frame_group >= 0]) if g != label]
-            stats["other_groups"] = {
-                str(g): self._mesh_group(g, self.out_dir / "groups" / f"group_{g}", False, keyframes, start_T_kf,
-                                         group_of_kf, kf_of, kf_T, frame_group)
-                for g in others}
+            stats["other_groups"] = {str(g): mesh_group(g, self.out_dir / "groups" / f"group_{g}", False)
+                                     for g in others}
         return stats
-
-    def _mesh_group(self, label, out_dir, render, keyframes, start_T_kf, group_of_kf, kf_of, kf_T,
-                    frame_group) -> dict:
-        """Reconstruct group ``label``, bring it into the frame of the group's first
-        contact frame and write it to ``out_dir`` (``render``: also ``mesh.png``);
-        returns its statistics, or ``{"skipped": reason}``."""
-        first = int(np.nonzero(frame_group == label)[0][0])
-        try:
-            res = reconstruct(keyframes, start_T_kf, self.config, group_of_kf, group=label)
-        except ReconError as exc:
-            print(f"reconstruction of group {label} skipped: {exc}")
-            return {"skipped": str(exc)}
-        start_T_first = start_T_kf[int(kf_of[first])] @ torch.as_tensor(kf_T[first])
-        first_T_start = torch.linalg.inv(start_T_first)
-        res.fused_mesh = transform_mesh(res.fused_mesh, first_T_start)
-        if res.mesh is not None:
-            res.mesh = transform_mesh(res.mesh, first_T_start)
-        out_dir.mkdir(parents=True, exist_ok=True)
-        res.save(out_dir, render=render)
-        return {k: v for k, v in res.stats.items() if isinstance(v, (int, float, str, bool))}
 
     def _plot_graph(self, backend: BackEnd) -> None:
         """``pose_graph.png``: the largest group's keyframes, coverage keyframes and edges."""
