@@ -81,6 +81,7 @@ def test_own_layout_roundtrip(tmp_path):
         ("normalflow: {n_samples: 3000.5}", r"normalflow.n_samples must be of type int"),
         ("normalflow: {max_iters: true}", r"normalflow.max_iters must be of type int"),
         ("loop: {consistency: 'yes'}", r"loop.consistency must be of type bool"),
+        ("recon: {all_groups: maybe}", r"recon.all_groups must be of type bool, got 'maybe'"),
         ("normalflow: {coarse_factors: 4}", r"normalflow.coarse_factors must be a list"),
         ("normalflow: {coarse_factors: [4, x]}", r"normalflow.coarse_factors\[1\] must be of type int"),
         ("sensor: {name: 3}", r"sensor.name must be of type str"),
