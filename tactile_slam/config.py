@@ -142,7 +142,9 @@ class NormalFlowConfig:
     GelSLAM rule) or ``"random"`` (old NormalFlow: random contact pixels, seeded by
     ``seed``). ``check_scores`` False skips the CCS/SCR test (old NormalFlow).
     ``jacobian``: ``"analytic"`` or ``"autograd"`` (torch.func); both agree.
-    ``lm_damping`` is a Marquardt factor on the normal equations. A pair is
+    ``lm_damping`` is a Levenberg-Marquardt factor on the normal equations: it adds
+    ``lm_damping * (diag(A) + 1e-3 block mean of diag(A))``, so that it also holds back an
+    unobservable direction (``diag(A)`` 0 there). A pair is
     degenerate (failed) when the smallest-to-largest eigenvalue ratio of its normal
     equations, translations scaled by the samples' RMS spread, is below
     ``degenerate_eig`` (0 disables the test). ``coarse_factors`` adds coarse levels

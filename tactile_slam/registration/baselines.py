@@ -110,6 +110,7 @@ def _run(method, ref: Frame, tar: Frame, init_tar_T_ref: torch.Tensor | None, cf
         tar_T_ref=torch.stack(poses).to(dev), ccs=nan.to(dev), scr=nan.clone().to(dev), n_shared=n.to(dev),
         iterations=torch.full((b,), -1, dtype=torch.int64, device=dev),
         converged=torch.ones(b, dtype=torch.bool, device=dev), ok=(n >= cfg.min_inliers).to(dev),
+        conditioning=nan.clone().to(dev),
     )
 
 

@@ -293,22 +293,35 @@ def _inside(grid: torch.Tensor) -> torch.Tensor:
 
 
 def _solve(ata: np.ndarray, atb: np.ndarray, ridge: np.ndarray, damping: float) -> tuple[np.ndarray, np.ndarray]:
-    """Damped 5x5 normal equations ``(A + ridge + damping diag(A)) x = b`` of all pairs in
-    one batched LAPACK call (Marquardt scaling; the tiny ``ridge`` keeps unobservable
-    directions at 0 instead of NaN, and makes the matrix positive definite whenever it
-    is finite and not all zero). A singular pair makes the batched call raise; then each
-    pair is solved by Cholesky (:func:`_solve_each`). ``(b, 5, 5)``, ``(b, 5)`` ->
-    ``(delta (b, 5), solved (b,) bool)``; an unsolvable pair gets a zero step and
-    ``solved = False``."""
+    """Damped 5x5 normal equations ``(A + ridge + damping D) x = b`` of all pairs in one
+    batched LAPACK call. The tiny ``ridge`` keeps unobservable directions at 0 instead
+    of NaN, and makes the matrix positive definite whenever it is finite and not all
+    zero. ``D`` (:func:`_damping_diagonal`) is Marquardt's ``diag(A)`` with a floor per
+    block, so that damping also bounds the step along an unobservable direction, where
+    ``diag(A)`` is 0 and the ridge alone would pass rounding noise through amplified.
+    A singular pair makes the batched call raise; then each pair is solved by Cholesky
+    (:func:`_solve_each`). ``(b, 5, 5)``, ``(b, 5)`` -> ``(delta (b, 5), solved (b,)
+    bool)``; an unsolvable pair gets a zero step and ``solved = False``."""
     damped = ata + ridge
     if damping > 0:
-        damped = damped + damping * ata * np.eye(5)
+        damped = damped + damping * _damping_diagonal(ata)
     try:
         delta = np.linalg.solve(damped, atb[..., None])[..., 0]
     except np.linalg.LinAlgError:
         return _solve_each(damped, atb)
     solved = np.isfinite(delta).all(1)
     return np.where(solved[:, None], delta, 0.0), solved
+
+
+def _damping_diagonal(ata: np.ndarray) -> np.ndarray:
+    """``diag(A) + 1e-3 diag(m)`` with ``m`` the mean diagonal entry of the rotation block
+    for the three rotations and of the translation block for the two translations (each
+    in its own unit, so no scale between radians and metres is needed). The floor is
+    far below any direction the data constrains, so it slows none of them.
+    ``(b, 5, 5)`` -> ``(b, 5, 5)`` diagonal."""
+    d = ata.diagonal(axis1=1, axis2=2)
+    floor = np.repeat(np.stack([d[:, :3].mean(1), d[:, 3:].mean(1)], 1), [3, 2], axis=1)
+    return (d + 1e-3 * floor)[:, :, None] * np.eye(5)
 
 
 def _solve_each(damped: np.ndarray, atb: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -629,6 +642,8 @@ def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig,
     scaled = st.ata * sc[:, :, None] * sc[:, None, :]
     finite = np.isfinite(scaled).all((1, 2))  # numpy's eigvalsh raises on NaN; such a pair is degenerate
     eig = np.linalg.eigvalsh(np.where(finite[:, None, None], scaled, np.eye(5)))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        conditioning = np.where(finite & (eig[:, -1] > 0), eig[:, 0] / eig[:, -1], 0.0)
     degenerate = ~finite | ~(eig[:, 0] > config.degenerate_eig * eig[:, -1])
     ok = ~st.lost & ~degenerate & tz_ok
     if config.check_scores:
@@ -636,7 +651,7 @@ def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig,
     T = np.zeros((b, 4, 4))
     T[:, :3, :3], T[:, :2, 3], T[:, 2, 3], T[:, 3, 3] = st.rot, st.txy, tz, 1.0
     out = dict(tar_T_ref=T, ccs=ccs, scr=scr, n_shared=shf.sum(1).astype(np.int64), iterations=st.iterations,
-               converged=st.converged, ok=ok)
+               converged=st.converged, ok=ok, conditioning=conditioning)
     return RegistrationResult(**{name: torch.from_numpy(np.ascontiguousarray(v)).to(prep.device)
                                  for name, v in out.items()})
 

@@ -28,6 +28,11 @@ class RegistrationResult:
         converged: ``(B,)`` bool, the step fell below the convergence tolerances.
         ok: ``(B,)`` bool, the registration passed every check; failed pairs are reported
             here, never raised.
+        conditioning: ``(B,)`` float64 smallest over largest eigenvalue of the final
+            normal equations, translations scaled by the samples' RMS spread (0 when
+            they are not finite; NaN for the baselines). Below ``degenerate_eig`` a
+            pair fails; above it, a small value still marks a weakly constrained
+            direction (a flat valley of the cost): see docs/registration.md.
     """
 
     tar_T_ref: torch.Tensor
@@ -37,6 +42,7 @@ class RegistrationResult:
     iterations: torch.Tensor
     converged: torch.Tensor
     ok: torch.Tensor
+    conditioning: torch.Tensor
 
     def __len__(self) -> int:
         return self.tar_T_ref.shape[0]

@@ -1,3 +1,4 @@
+import math
 from dataclasses import replace
 
 import pytest
@@ -63,8 +64,10 @@ class TestSmoke:
         b = len(NAMES)
         assert isinstance(batched, RegistrationResult) and len(batched) == b
         assert batched.tar_T_ref.shape == (b, 4, 4) and batched.tar_T_ref.dtype == torch.float64
-        for name in ("ccs", "scr", "n_shared", "iterations", "converged", "ok"):
+        for name in ("ccs", "scr", "n_shared", "iterations", "converged", "ok", "conditioning"):
             assert getattr(batched, name).shape == (b,)
+        assert batched.conditioning.dtype == torch.float64
+        assert bool(((batched.conditioning > 0) & (batched.conditioning <= 1)).all())
         assert batched.ok.dtype == torch.bool and batched.n_shared.dtype == torch.int64
         assert torch.equal(batched.tar_T_ref[:, 3], EYE[3].expand(b, 4))
 
@@ -276,6 +279,43 @@ class TestFailures:
         assert not bool(res.ok[0]) and bool(torch.isfinite(res.tar_T_ref).all())
         # the same sphere passes once the degeneracy test is disabled: the scores alone cannot tell
         assert bool(register(f[0], f[1], None, NormalFlowConfig(degenerate_eig=0.0)).ok[0])
+
+    @pytest.mark.parametrize("damping", [1e-3, 1.0])
+    def test_lm_damping_holds_an_unobservable_direction(self, damping):
+        """A textureless sphere cannot see a turn about its vertical axis. The damped solve
+        leaves that direction where it started (identity), and the pair stays a finite
+        failure. Marquardt's diag(A) alone is 0 there, so the step along it was rounding
+        noise over the 1e-12 ridge: 5.9 degrees of turn at damping 1e-3, 78 at 1."""
+        f = frames(Surface(), [EYE, rigid(rz_deg=3, tx_mm=0.2)])
+        res = register(f[0], f[1], None, NormalFlowConfig(lm_damping=damping))
+        rot = res.tar_T_ref[0, :3, :3]
+        turn_z = math.degrees(math.atan2(float(rot[1, 0]), float(rot[0, 0])))
+        assert not bool(res.ok[0]) and bool(torch.isfinite(res.tar_T_ref).all())
+        assert abs(turn_z) < 0.2
+
+    @pytest.mark.parametrize("damping", [0.0, 1e-3, 1.0])
+    def test_lm_damping_does_not_hold_back_a_weak_direction(self, damping):
+        """Straight grooves on a dome: the slide along the grooves is seen only through the
+        dome, a weak but real constraint. Damping still recovers the motion."""
+        truth = rigid(rz_deg=3, tx_mm=0.2)
+        f = frames(Surface(waves=[(60e-6, 1e-3, 0.0, 0.0)]), [EYE, truth])
+        res = register(f[0], f[1], None, NormalFlowConfig(lm_damping=damping))
+        rot, trans = pose_error(res.tar_T_ref, truth[None])
+        assert bool(res.ok[0]) and float(rot) < 0.05 and float(trans) < 0.005
+
+    def test_conditioning_orders_the_constraints_and_decides_degeneracy(self):
+        """A flat contact constrains nothing (0), a textureless sphere hides its turns
+        (~1e-10), straight grooves leave the slide along them to the dome, a bumpy
+        texture pins every direction. ``degenerate_eig`` is a threshold on exactly this
+        number: just above a pair's value it fails, just below it passes."""
+        truth = rigid(rz_deg=3, tx_mm=0.2)
+        surfaces = [Surface(flat=True), Surface(), Surface(waves=[(60e-6, 1e-3, 0.0, 0.0)]), bumpy(1)]
+        pairs = [frames(surf, [EYE, truth]) for surf in surfaces]
+        cond = [float(register(f[0], f[1]).conditioning[0]) for f in pairs]
+        assert cond[0] == 0.0 and cond[1] < 1e-6 < cond[2] < 1e-3 < cond[3] <= 1.0, cond
+        f, c = pairs[2], cond[2]
+        assert bool(register(f[0], f[1], None, NormalFlowConfig(degenerate_eig=0.9 * c)).ok[0])
+        assert not bool(register(f[0], f[1], None, NormalFlowConfig(degenerate_eig=1.1 * c)).ok[0])
 
     def test_too_few_shared_samples(self, scene):
         ref, tars, _, _ = scene
