@@ -27,7 +27,9 @@ class Frame:
     """Geometry of ``B`` tactile frames.
 
     Attributes:
-        gradients: ``(B, H, W, 2)`` slopes ``(dh/dx, dh/dy)``, px/px.
+        gradients: ``(B, H, W, 2)`` slopes ``(dh/dx, dh/dy)``, px/px; ``None`` in a
+            stored keyframe (:meth:`clone` with ``gradients=False``): nothing after the
+            frame's construction reads them, and they are a quarter of its memory.
         height: ``(B, H, W)`` px; the undeformed gel is 0 and pressing is negative.
         contact: ``(B, H, W)`` bool, the eroded contact mask used by every later stage.
         normals: ``(B, H, W, 3)`` gel-surface unit normals (toward the object).
@@ -38,7 +40,7 @@ class Frame:
         mm_per_px: sensor scale.
     """
 
-    gradients: torch.Tensor
+    gradients: torch.Tensor | None
     height: torch.Tensor
     contact: torch.Tensor
     normals: torch.Tensor
@@ -49,35 +51,46 @@ class Frame:
     mm_per_px: float
 
     def __len__(self) -> int:
-        return self.gradients.shape[0]
+        return self.height.shape[0]
 
     @property
     def shape(self) -> tuple[int, int]:
-        return tuple(self.gradients.shape[1:3])
+        return tuple(self.height.shape[1:3])
 
     @property
     def device(self) -> torch.device:
-        return self.gradients.device
+        return self.height.device
+
+    def _map(self, fn) -> "Frame":
+        """``fn`` applied to every tensor (absent gradients stay ``None``)."""
+        kw = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "mm_per_px"}
+        return replace(self, **{k: None if v is None else fn(v) for k, v in kw.items()})
 
     def __getitem__(self, i: int | slice | torch.Tensor) -> "Frame":
         if isinstance(i, int):
             i = slice(i, i + 1) if i != -1 else slice(-1, None)
-        kw = {f.name: getattr(self, f.name)[i] for f in fields(self) if f.name != "mm_per_px"}
-        return Frame(mm_per_px=self.mm_per_px, **kw)
+        return self._map(lambda t: t[i])
+
+    def clone(self, gradients: bool = True) -> "Frame":
+        """The frames with maps of their own. ``frames[i]`` is a view that keeps the whole
+        batch's storage alive (about 2.2 MB per 320x240 frame); a record that outlives
+        its batch, such as a keyframe, stores a clone, without the gradients if
+        ``gradients`` is False (0.6 of the 2.2 MB)."""
+        return replace(self._map(torch.clone), **({} if gradients else {"gradients": None}))
 
     def to(self, device: torch.device | str) -> "Frame":
-        kw = {f.name: getattr(self, f.name).to(device) for f in fields(self) if f.name != "mm_per_px"}
-        return replace(self, **kw)
+        return self._map(lambda t: t.to(device))
 
     @staticmethod
     def cat(frames: list["Frame"]) -> "Frame":
+        """One batch of ``frames``; its gradients are ``None`` if any frame has none."""
         if not frames:
             raise InputError("cannot concatenate an empty list of frames")
-        kw = {
-            f.name: torch.cat([getattr(fr, f.name) for fr in frames])
-            for f in fields(Frame)
-            if f.name != "mm_per_px"
-        }
+        kw = {}
+        for f in fields(Frame):
+            if f.name != "mm_per_px":
+                parts = [getattr(fr, f.name) for fr in frames]
+                kw[f.name] = None if any(p is None for p in parts) else torch.cat(parts)
         return Frame(mm_per_px=frames[0].mm_per_px, **kw)
 
 

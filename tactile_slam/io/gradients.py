@@ -6,14 +6,21 @@ Two layouts (method.md section 9.1):
   ``contact_masks.npy`` ``(N, H, W)``: the NormalFlow tracking dataset. Both are
   memory-mapped, so long sequences are read frame by frame;
 * an ``.npz`` with ``gradients`` ``(N, H, W, 2)`` (float16/32/64) and ``contact``
-  ``(N, H, W)``, e.g. the simulator's ``gt_gradients.npz``; loaded whole.
+  ``(N, H, W)``, e.g. the simulator's ``gt_gradients.npz``. Compressed or not, each array
+  is read frame by frame from its zip stream (:class:`NpzFrames`): in order it streams,
+  nothing ahead of the read frame is decompressed, and a read behind the last one
+  decompresses the member again from its start (for random access over long sequences
+  prefer the ``.npy`` layout).
 
-Gradients are delivered as float32, masks as bool; a frame with NaN or Inf raises.
+Gradients are delivered as float32, masks as bool; a frame with NaN or Inf raises when
+it is read.
 """
 
 from __future__ import annotations
 
+import threading
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -37,19 +44,81 @@ def _load_npy(path: Path) -> np.ndarray:
         raise InputError(f"cannot read {path}: {exc}") from exc
 
 
-def _load_npz(path: Path) -> tuple[np.ndarray, np.ndarray]:
+class NpzFrames:
+    """One array of an ``.npz`` file, read along its first axis from the zip stream.
+
+    Behaves as far as :class:`GradientSequence` needs like the array: ``shape``,
+    ``dtype``, ``ndim``, ``len`` and ``[i]`` (one frame, a fresh ``ndarray``). Reads are
+    serialised by a lock (the stream has one cursor); a pickled copy reopens the file.
+
+    Raises:
+        InputError: no such member, not an ``.npy`` member numpy can stream (object
+            dtype, Fortran order), a truncated or corrupt stream (when read).
+    """
+
+    def __init__(self, path: Path, key: str):
+        self.path, self.key = Path(path), key
+        self._open()
+
+    def _open(self) -> None:
+        try:
+            self._zip = zipfile.ZipFile(self.path)
+            names = [n[:-4] for n in self._zip.namelist() if n.endswith(".npy")]
+            if self.key not in names:
+                raise InputError(f"{self.path} has no array {self.key!r} (found {sorted(names)})")
+            self._stream = self._zip.open(self.key + ".npy")
+            version = np.lib.format.read_magic(self._stream)
+            if version not in ((1, 0), (2, 0)):
+                raise InputError(f"{self.path}: array {self.key!r} has .npy format {version}, expected 1.0 or 2.0")
+            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            shape, fortran, dtype = read_header(self._stream)
+        except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
+            raise InputError(f"cannot read {self.path}: {exc}") from exc
+        if fortran or dtype.hasobject or len(shape) == 0:
+            raise InputError(f"{self.path}: array {self.key!r} cannot be read frame by frame "
+                             f"(shape {shape}, {'Fortran order' if fortran else dtype})")
+        self.shape, self.dtype = tuple(int(n) for n in shape), dtype
+        self._first = self._stream.tell()
+        self._frame_bytes = int(np.prod(self.shape[1:], dtype=np.int64)) * dtype.itemsize
+        self._next = 0  # frame the stream's cursor is at
+        self._lock = threading.Lock()
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def __len__(self) -> int:
+        return self.shape[0]
+
+    def __getitem__(self, i: int) -> np.ndarray:
+        n = self.shape[0]
+        i = int(i) + n if int(i) < 0 else int(i)
+        if not 0 <= i < n:
+            raise IndexError(f"frame {i} of {n}")
+        with self._lock:
+            try:
+                if i != self._next:
+                    self._stream.seek(self._first + i * self._frame_bytes)
+                data = self._stream.read(self._frame_bytes)
+            except (OSError, EOFError, ValueError, zipfile.BadZipFile, zlib.error) as exc:
+                raise InputError(f"{self.path}: cannot read frame {i} of {self.key!r}: {exc}") from exc
+            self._next = i + 1 if len(data) == self._frame_bytes else -1
+        if len(data) != self._frame_bytes:
+            raise InputError(f"{self.path}: array {self.key!r} ends inside frame {i} (truncated file)")
+        return np.frombuffer(data, dtype=self.dtype).reshape(self.shape[1:])
+
+    def __getstate__(self) -> dict:
+        return {"path": self.path, "key": self.key}
+
+    def __setstate__(self, state: dict) -> None:
+        self.path, self.key = state["path"], state["key"]
+        self._open()
+
+
+def _load_npz(path: Path) -> tuple[NpzFrames, NpzFrames]:
     if not path.is_file():
         raise InputError(f"gradient sequence file not found: {path}")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            for key in (GRADIENTS_KEY, CONTACT_KEY):
-                if key not in data:
-                    raise InputError(f"{path} has no array {key!r} (found {sorted(data.files)})")
-            return data[GRADIENTS_KEY], data[CONTACT_KEY]
-    except (ValueError, OSError, zipfile.BadZipFile) as exc:
-        if isinstance(exc, InputError):
-            raise
-        raise InputError(f"cannot read {path}: {exc}") from exc
+    return NpzFrames(path, GRADIENTS_KEY), NpzFrames(path, CONTACT_KEY)
 
 
 def check_sequence(gradients: np.ndarray, contact: np.ndarray, where: str) -> None:
@@ -81,8 +150,8 @@ class GradientSequence(SequenceSource):
 
     Raises:
         InputError: missing or unreadable files, shape mismatch between gradients and
-            masks, an empty sequence, the wrong size; NaN or Inf in a frame (when that
-            frame is read; ``.npz`` files are checked whole on opening).
+            masks, an empty sequence, the wrong size; NaN or Inf in a frame, or a
+            truncated ``.npz`` stream (when that frame is read).
     """
 
     def __init__(self, path: str | Path, fps: float, shape: tuple[int, int] | None = None):
@@ -94,9 +163,6 @@ class GradientSequence(SequenceSource):
         if path.suffix.lower() == ".npz":
             self.gradients, self.contact = _load_npz(path)
             check_sequence(self.gradients, self.contact, str(path))
-            bad = ~np.isfinite(self.gradients).reshape(len(self.gradients), -1).all(axis=1)
-            if bad.any():
-                raise InputError(f"{path}: gradients of frame {int(np.argmax(bad))} contain NaN or Inf")
         else:
             if path.is_dir():
                 folder, grad_path = path, path / GRADIENTS_NPY

@@ -170,7 +170,8 @@ class OfflinePipeline:
         def emit(kfs):
             for kf in kfs:
                 if mode == "image_sift":
-                    kf.image = images.get(kf.video_index)
+                    image = images.get(kf.video_index)
+                    kf.image = None if image is None else image.clone()  # not a view pinning the batch
                 t0 = time.perf_counter()
                 backend.add(kf)
                 t_back.append(time.perf_counter() - t0)

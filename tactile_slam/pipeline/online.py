@@ -9,7 +9,7 @@ on :attr:`OnlinePipeline.stream`, and sends every keyframe to the back-end worke
 
 Keyframes cross the process boundary as one float32 buffer in shared memory per
 keyframe (:func:`pack_keyframe`): the maps are copied once into it, the worker maps the
-same pages, and the tracker's own copy of the keyframe becomes a view of that buffer.
+same pages, and the pipeline's own record of the keyframe is a view of that buffer.
 
 The worker takes the keyframes queued since its last step as one batch: each gets
 its odometry factor and coverage update, but only the newest gets loop detection
@@ -92,14 +92,14 @@ class OnlineOptions(RunOptions):
 
 # ---------------------------------------------------------------- keyframes across processes
 
-_CHANNELS = (("gradients", 2), ("height", 1), ("normals", 3), ("curvature", 1), ("contact", 1))
+_CHANNELS = (("height", 1), ("normals", 3), ("curvature", 1), ("contact", 1))
 
 
 @dataclass
 class PackedKeyframe:
-    """A keyframe as one ``(8, H, W)`` float32 shared-memory buffer (gradients x/y,
-    height, normals x/y/z, curvature, contact) plus small metadata; pickles to a handle
-    of that buffer, not its contents."""
+    """A keyframe as one ``(6, H, W)`` float32 shared-memory buffer (height, normals
+    x/y/z, curvature, contact; a keyframe carries no gradients) plus small metadata;
+    pickles to a handle of that buffer, not its contents."""
 
     id: int
     session: int
@@ -119,11 +119,10 @@ def pack_keyframe(kf: Keyframe) -> PackedKeyframe:
         raise ValueError(f"a keyframe holds one frame, got {len(fr)}")
     h, w = fr.shape
     buf = torch.empty(sum(c for _, c in _CHANNELS), h, w, dtype=torch.float32).share_memory_()
-    buf[0:2] = fr.gradients[0].permute(2, 0, 1)
-    buf[2] = fr.height[0]
-    buf[3:6] = fr.normals[0].permute(2, 0, 1)
-    buf[6] = fr.curvature[0]
-    buf[7] = fr.contact[0]
+    buf[0] = fr.height[0]
+    buf[1:4] = fr.normals[0].permute(2, 0, 1)
+    buf[4] = fr.curvature[0]
+    buf[5] = fr.contact[0]
     return PackedKeyframe(kf.id, kf.session, kf.new_session, kf.prev_T_kf.cpu().numpy().copy(),
                           int(fr.index[0]), float(fr.timestamp[0]), bool(fr.in_contact[0]), fr.mm_per_px, buf)
 
@@ -133,11 +132,11 @@ def unpack_keyframe(p: PackedKeyframe) -> Keyframe:
     is the only copy)."""
     b = p.buffer
     frame = Frame(
-        gradients=b[0:2].permute(1, 2, 0)[None],
-        height=b[2][None],
-        contact=(b[7] > 0.5)[None],
-        normals=b[3:6].permute(1, 2, 0)[None],
-        curvature=b[6][None],
+        gradients=None,
+        height=b[0][None],
+        contact=(b[5] > 0.5)[None],
+        normals=b[1:4].permute(1, 2, 0)[None],
+        curvature=b[4][None],
         in_contact=torch.tensor([p.in_contact]),
         index=torch.tensor([p.index], dtype=torch.int64),
         timestamp=torch.tensor([p.timestamp], dtype=torch.float64),
@@ -526,7 +525,7 @@ class OnlinePipeline(OfflinePipeline):
         def emit(kfs):
             for kf in kfs:
                 packed = pack_keyframe(kf)
-                kf = unpack_keyframe(packed)  # the tracker keeps a view of the shared buffer
+                kf = unpack_keyframe(packed)  # the pipeline keeps a view of the shared buffer
                 kmap.add(kf)
                 if self.backend is not None:
                     self.backend.send(packed)

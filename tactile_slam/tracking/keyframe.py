@@ -17,7 +17,8 @@ class Keyframe:
         id: keyframe id, sequential over the whole run.
         session: tracking-session id (a contiguous contact period tracked without an
             unrecoverable failure); the session's first keyframe is its head.
-        frame: the keyframe's geometry, a :class:`Frame` with ``B = 1``.
+        frame: the keyframe's geometry, a :class:`Frame` with ``B = 1`` and maps of its
+            own; the trackers store it without gradients (``None``), which nothing reads.
         new_session: True for a session head.
         prev_T_kf: ``(4, 4)`` float64, metres: this keyframe's pose in the previous
             keyframe of the same session (the odometry measurement); identity for a

@@ -195,7 +195,9 @@ class Tracker:
         if new_session:
             self.next_session += 1
         session = self.next_session - 1
-        kf = Keyframe(self.next_keyframe_id, session, frame, new_session, prev_T_kf.clone())
+        # a clone without gradients: the frame is usually a view of its geometry batch, which
+        # it would keep alive, and nothing reads a keyframe's slopes
+        kf = Keyframe(self.next_keyframe_id, session, frame.clone(gradients=False), new_session, prev_T_kf.clone())
         self.next_keyframe_id += 1
         self.kf = kf
         self.kf_prepared = prepared

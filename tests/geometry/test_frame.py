@@ -242,3 +242,34 @@ class TestDepthRule:
             cfg.contact.min_depth_mm = bad
             with pytest.raises(ConfigError, match="min_depth_mm"):
                 FrameBuilder(cfg)
+
+
+def test_clone_owns_its_maps():
+    """``frames[i]`` shares the batch's storage; ``clone`` copies just that frame, equal
+    in value, so a kept frame does not pin the batch."""
+    z = torch.rand(3, 5, 6)
+    batch = Frame(gradients=torch.rand(3, 5, 6, 2), height=z, contact=z > 0.5, normals=torch.rand(3, 5, 6, 3),
+                  curvature=-z, in_contact=torch.ones(3, dtype=torch.bool), index=torch.arange(3),
+                  timestamp=torch.arange(3, dtype=torch.float64), mm_per_px=0.0634)
+    view, copy = batch[1], batch[1].clone()
+    for name in ("gradients", "height", "contact", "normals", "curvature", "index", "timestamp"):
+        v, c = getattr(view, name), getattr(copy, name)
+        assert torch.equal(v, c)
+        assert v.untyped_storage().data_ptr() == getattr(batch, name).untyped_storage().data_ptr()
+        assert c.untyped_storage().nbytes() == c.numel() * c.element_size()
+    assert copy.mm_per_px == batch.mm_per_px
+
+
+def test_frames_without_gradients():
+    """A stored keyframe drops its gradients: size, batch, device, slicing, moving and
+    concatenation still work, and a batch with such a frame has none either."""
+    z = torch.rand(2, 5, 6)
+    full = Frame(gradients=torch.rand(2, 5, 6, 2), height=z, contact=z > 0.5, normals=torch.rand(2, 5, 6, 3),
+                 curvature=-z, in_contact=torch.ones(2, dtype=torch.bool), index=torch.arange(2),
+                 timestamp=torch.arange(2, dtype=torch.float64), mm_per_px=0.0634)
+    bare = full[1].clone(gradients=False)
+    assert bare.gradients is None and len(bare) == 1 and bare.shape == (5, 6) and bare.device == full.device
+    assert torch.equal(bare.normals, full.normals[1:]) and bare.to("cpu")[0].gradients is None
+    both = Frame.cat([full[0], bare])
+    assert both.gradients is None and torch.equal(both.height, full.height)
+    assert torch.equal(Frame.cat([full[0], full[1]]).gradients, full.gradients)

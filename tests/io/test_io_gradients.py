@@ -1,10 +1,15 @@
+import io
 import pickle
+import zipfile
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from tactile_slam.bench.common import PeakMemory
 from tactile_slam.io import GradientSequence, InputError
+from tactile_slam.io.gradients import NpzFrames
 
 
 def sequence(n=6, shape=(24, 32), seed=0):
@@ -102,11 +107,70 @@ class TestNpzLayout:
         with pytest.raises(InputError, match="no array 'contact'"):
             GradientSequence(tmp_path / "x.npz", fps=25)
 
-    def test_nan_checked_on_open(self, tmp_path):
+    def test_nan_frame_raises_when_read(self, tmp_path):
         g, c = sequence()
         g[2, 0, 0, 0] = np.inf
         np.savez(tmp_path / "x.npz", gradients=g, contact=c)
+        src = GradientSequence(tmp_path / "x.npz", fps=25)
+        src[1]
         with pytest.raises(InputError, match="frame 2 contain NaN or Inf"):
+            src[2]
+
+    @pytest.mark.parametrize("save", [np.savez, np.savez_compressed])
+    def test_frames_in_any_order(self, tmp_path, save):
+        """Streamed from the zip member: in order, backwards (the member is read again
+        from its start) and by negative index, every frame is the saved one."""
+        g, c = sequence(n=7)
+        save(tmp_path / "x.npz", gradients=g.astype(np.float16), contact=c.astype(np.uint8))
+        src = GradientSequence(tmp_path / "x.npz", fps=25)
+        assert isinstance(src.gradients, NpzFrames) and len(src) == 7 and src.shape == (24, 32)
+        for i in [0, 1, 2, 6, 3, 3, 0, -1]:
+            f = src[i % 7]
+            assert np.array_equal(f.gradients, g[i].astype(np.float16).astype(np.float32))
+            assert f.contact.dtype == bool and np.array_equal(f.contact, c[i])
+        with pytest.raises(IndexError):
+            src.gradients[7]
+
+    def test_pickle_reopens_without_copying(self, tmp_path):
+        g, c = sequence()
+        np.savez_compressed(tmp_path / "x.npz", gradients=g, contact=c)
+        src = GradientSequence(tmp_path / "x.npz", fps=25)
+        src[4]
+        blob = pickle.dumps(src)
+        assert len(blob) < 2000
+        assert np.array_equal(pickle.loads(blob)[2].gradients, g[2])
+
+    @pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux /proc")
+    def test_opening_a_long_sequence_reads_nothing_ahead(self, tmp_path):
+        """400 zero frames of 320x240 compress to almost nothing but are 250 MB as float32
+        maps: opening and reading a frame must not decompress them all."""
+        n, shape = 400, (240, 320)
+        np.savez_compressed(tmp_path / "long.npz", gradients=np.zeros((n, *shape, 2), np.float32),
+                            contact=np.zeros((n, *shape), bool))
+        with PeakMemory() as mem:
+            src = GradientSequence(tmp_path / "long.npz", fps=25)
+            f = src[n - 1]
+        assert f.gradients.shape == (*shape, 2) and not f.contact.any()
+        assert mem.peak_mb - mem.start_mb < 50
+
+    def test_truncated_member(self, tmp_path):
+        """A member whose header promises more frames than it holds: the frames it holds
+        read, the missing one is an error naming the file."""
+        g, c = sequence(n=5)
+        with zipfile.ZipFile(tmp_path / "x.npz", "w") as z:
+            for key, arr, keep in (("gradients", g, 3), ("contact", c, 5)):
+                buf = io.BytesIO()
+                np.lib.format.write_array_header_1_0(buf, np.lib.format.header_data_from_array_1_0(arr))
+                z.writestr(key + ".npy", buf.getvalue() + arr[:keep].tobytes())
+        src = GradientSequence(tmp_path / "x.npz", fps=25)
+        assert np.array_equal(src[2].gradients, g[2])
+        with pytest.raises(InputError, match="x.npz.*ends inside frame 3"):
+            src[3]
+
+    def test_fortran_order_member(self, tmp_path):
+        g, c = sequence()
+        np.savez(tmp_path / "x.npz", gradients=np.asfortranarray(g), contact=c)
+        with pytest.raises(InputError, match="cannot be read frame by frame"):
             GradientSequence(tmp_path / "x.npz", fps=25)
 
     def test_not_a_zip(self, tmp_path):

@@ -74,7 +74,7 @@ class ScriptedRegistrar:
             t = self.slip(ref_index, tar_index) @ t
         full = lambda v, dt=torch.float64: torch.full((b,), v, dtype=dt)  # noqa: E731
         return RegistrationResult(t.expand(b, 4, 4).clone(), full(0.9 if ok else 0.1), full(0.9), full(100, torch.int64),
-                                  full(7, torch.int64), full(True, torch.bool), full(ok, torch.bool))
+                                  full(7, torch.int64), full(True, torch.bool), full(ok, torch.bool), full(0.1))
 
 
 def run(contacts, fails=lambda r, t: False, slip=None, fps=25.0, coarse_fails=None, **cfg):
@@ -211,6 +211,26 @@ def test_frame_to_frame_baseline_keeps_contact_the_same_way():
     torch.testing.assert_close(steps[3].kf_T_frame, torch.linalg.inv(pose(1)) @ pose(3))
     with pytest.raises(ValueError, match="keep_contact_mm2"):
         FrameToFrameTracker(reg, -1.0)
+
+
+def _owns_storage(fr: Frame) -> bool:
+    maps = (fr.height, fr.contact, fr.normals, fr.curvature) + (() if fr.gradients is None else (fr.gradients,))
+    return all(m.untyped_storage().nbytes() == m.numel() * m.element_size() for m in maps)
+
+
+def test_keyframes_do_not_keep_their_geometry_batch_alive():
+    """The pipeline hands the trackers ``batch[i]``, a view of a geometry batch. A
+    keyframe holding that view kept all of the batch's maps alive: a 6000-frame scan
+    grew to 10 GB. Keyframes own copies of their own frame's maps, without the gradients
+    (nothing reads a keyframe's slopes)."""
+    batch = Frame.cat([frame(i, c) for i, c in enumerate([True, True, False, True, True, True])])
+    assert not _owns_storage(batch[0])  # the view the trackers are given
+    tr = Tracker(TrackingConfig(), ScriptedRegistrar(lambda r, t: t == 4))
+    kfs = [k for i in range(len(batch)) for k in tr.step(batch[i]).keyframes] + tr.finish()
+    f2f = FrameToFrameTracker(ScriptedRegistrar(lambda r, t: False), KEEP)
+    kfs += [k for i in range(len(batch)) for k in f2f.step(batch[i]).keyframes]
+    assert len(kfs) >= 4 and all(_owns_storage(k.frame) and k.frame.gradients is None for k in kfs)
+    torch.testing.assert_close(kfs[0].frame.normals, batch[0].normals)
 
 
 @pytest.mark.parametrize("fails, emitted", [
