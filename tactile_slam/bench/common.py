@@ -68,6 +68,44 @@ def time_fn(fn: Callable[[], Any], repeats: int, warmup: int = 3, sync_cuda: boo
     return out
 
 
+def _status_mb(key: str) -> float | None:
+    """A ``/proc/self/status`` memory line (``VmRSS``, ``VmHWM``) in MB; ``None`` where
+    there is no such file (not Linux)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith(key + ":"):
+                return int(line.split()[1]) / 1024.0
+    except OSError:
+        pass
+    return None
+
+
+class PeakMemory:
+    """Peak resident memory of this process over a block, in MB (Linux).
+
+    ``with PeakMemory() as mem: work()`` then ``mem.start_mb`` (resident at entry) and
+    ``mem.peak_mb`` (the highest resident size during the block: the kernel's high-water
+    mark, reset at entry by writing 5 to ``/proc/self/clear_refs``). The start is the
+    high-water mark just after that reset, not a separate ``VmRSS`` read: the kernel's
+    resident counters are batched per thread, and a separate read can land a few MB
+    above the mark the peak is measured from. Both are ``None`` where that is not
+    possible, so a benchmark still runs elsewhere.
+    """
+
+    def __enter__(self) -> "PeakMemory":
+        self.start_mb = self.peak_mb = None
+        try:
+            Path("/proc/self/clear_refs").write_text("5")
+        except OSError:
+            return self
+        self.start_mb = _status_mb("VmHWM")
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.start_mb is not None:  # the block's peak is at least what was resident when it began
+            self.peak_mb = max(_status_mb("VmHWM"), self.start_mb)
+
+
 def write_json(path: str | Path, name: str, results: dict[str, Any]) -> Path:
     """Write ``{"benchmark", "machine", "date", "results"}`` to ``path``."""
     path = Path(path)
@@ -92,11 +130,9 @@ def rendered_frames(renderer, builder, object_T_sensor: np.ndarray, index: np.nd
         one single-image :class:`~tactile_slam.geometry.frame.Frame` per pose, owning its
         memory (a slice of a batch would keep the whole render batch alive).
     """
-    from tactile_slam.geometry.frame import Frame
-
     index = np.arange(len(object_T_sensor)) if index is None else np.asarray(index)
     for a in range(0, len(object_T_sensor), batch):
         maps = renderer.render(object_T_sensor[a:a + batch])
         frames = builder.from_gradients(maps.gradients, maps.contact, index=torch.as_tensor(index[a:a + batch]))
         for j in range(len(frames)):
-            yield Frame.cat([frames[j]])
+            yield frames[j].clone()

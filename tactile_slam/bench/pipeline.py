@@ -4,8 +4,10 @@ Simulates one episode (``--object``, ``--kind``, ``--level``), then runs the off
 pipeline on it once per device per repeat, the devices taking turns within each repeat so
 that a drift of the machine's speed affects them alike. Reports, per device, the median over
 the repeats of ``stats.json``'s ``fps``, ``timing_ms`` (per-frame stage medians) and
-``timing_ms_per_keyframe``, and whether every run ended with the same keyframes, sessions,
-loops and groups (the devices should agree).
+``timing_ms_per_keyframe``, the peak resident memory of each run and its growth over the
+memory at the run's start (per keyframe too: keyframes are what a long scan accumulates),
+and whether every run ended with the same keyframes, sessions, loops and groups (the
+devices should agree).
 """
 
 from __future__ import annotations
@@ -17,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile_slam.bench.common import median_per_key, write_json
+from tactile_slam.bench.common import PeakMemory, median_per_key, write_json
 from tactile_slam.cli.devices import device_arg
 from tactile_slam.config import Config, resolve_device
 from tactile_slam.io.dispatch import open_source
@@ -41,11 +43,22 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def summarise(runs: list[dict]) -> dict:
-    """Medians over one device's runs of the ``stats.json`` timings."""
+    """Medians over one device's runs of the ``stats.json`` timings and of the memory
+    (``memory_mb``: ``start`` and ``peak`` resident MB per run, added by :func:`run`;
+    ``None`` where it could not be measured)."""
+    mem = [r.get("memory_mb") or {} for r in runs]
+    measured = [(m["peak"] - m["start"], r.get("keyframes")) for m, r in zip(mem, runs) if m.get("peak") is not None]
+    growth = [g for g, _ in measured]
+    per_kf = [g / k for g, k in measured if k]
+    median = lambda v: float(np.median(v)) if v else None  # noqa: E731
     return {"fps_median": float(np.median([r["fps"] for r in runs])),
             "fps_runs": [r["fps"] for r in runs],
             "timing_ms_median": median_per_key([r["timing_ms"] for r in runs]),
             "timing_ms_per_keyframe_median": median_per_key([r.get("timing_ms_per_keyframe") or {} for r in runs]),
+            "peak_rss_mb_median": median([m["peak"] for m in mem if m.get("peak") is not None]),
+            "rss_growth_mb_median": median(growth),
+            "rss_growth_mb_per_keyframe_median": median(per_kf),
+            "memory_mb_runs": mem,
             "outcomes": [{k: r.get(k) for k in OUTCOME_KEYS} for r in runs]}
 
 
@@ -61,9 +74,10 @@ def run(args) -> Path:
         for i in range(args.repeats):
             for d in devices:
                 options = RunOptions(method=args.method, device=d, progress=False, mesh=args.mesh)
-                result = OfflinePipeline(open_source(episode, cfg), cfg, Path(tmp) / f"run_{d}_{i}".replace(":", "_"),
-                                         options).run()
-                runs[d].append(result.stats)
+                source = open_source(episode, cfg)  # opened first: a whole-file input is not the run's growth
+                with PeakMemory() as mem:
+                    result = OfflinePipeline(source, cfg, Path(tmp) / f"run_{d}_{i}".replace(":", "_"), options).run()
+                runs[d].append({**result.stats, "memory_mb": {"start": mem.start_mb, "peak": mem.peak_mb}})
     per_device = {d: summarise(r) for d, r in runs.items()}
     outcomes = [o for s in per_device.values() for o in s["outcomes"]]
     results = {"episode": {"object": args.object, "kind": args.kind, "frames": args.frames, "level": args.level,

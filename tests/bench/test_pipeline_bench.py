@@ -1,12 +1,15 @@
 """bench pipeline: per-device medians of whole pipeline runs on one simulated episode."""
 
 import json
+import mmap
+from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from tactile_slam.bench import pipeline
+from tactile_slam.bench.common import PeakMemory
 from tactile_slam.cli.main import main
 from tactile_slam.config import Config
 from tactile_slam.io.dispatch import open_source
@@ -22,6 +25,28 @@ def test_summarise_takes_medians_per_stage():
     assert s["timing_ms_median"] == {"geometry": 2.0, "tracking": 1.0}
     assert s["timing_ms_per_keyframe_median"] == {}
     assert s["outcomes"][0]["keyframes"] == 2 and s["outcomes"][0]["loops"] is None
+    assert s["peak_rss_mb_median"] is None and s["rss_growth_mb_median"] is None  # not measured here
+    runs = [{**r, "memory_mb": {"start": 100.0, "peak": p}} for r, p in zip(runs, [140.0, 120.0, 160.0])]
+    s = pipeline.summarise(runs)
+    assert s["peak_rss_mb_median"] == 140.0 and s["rss_growth_mb_median"] == 40.0
+    assert s["rss_growth_mb_per_keyframe_median"] == 20.0
+
+
+@pytest.mark.skipif(not Path("/proc/self/clear_refs").exists(), reason="needs Linux /proc")
+def test_peak_memory_sees_a_transient_allocation():
+    """The peak is the block's own: a buffer freed before the block ends counts, and an
+    earlier peak (the previous block's) does not. The buffer is an anonymous map touched
+    page by page: a malloc'd one can reuse pages the process already holds (the full
+    suite did that), which rightly raises no peak."""
+    with PeakMemory() as mem:
+        buf = mmap.mmap(-1, 80_000_000)
+        for offset in range(0, len(buf), mmap.PAGESIZE):
+            buf[offset] = 1
+        buf.close()
+    assert mem.peak_mb - mem.start_mb > 70
+    with PeakMemory() as quiet:
+        pass
+    assert quiet.peak_mb - quiet.start_mb < 20
 
 
 def test_bench_pipeline_matches_a_direct_run(tmp_path):
@@ -35,6 +60,8 @@ def test_bench_pipeline_matches_a_direct_run(tmp_path):
     cpu = res["devices"]["cpu"]
     assert len(cpu["fps_runs"]) == 2 and cpu["fps_median"] > 0
     assert {"geometry", "tracking", "total"} <= set(cpu["timing_ms_median"])
+    if Path("/proc/self/clear_refs").exists():
+        assert all(m["peak"] >= m["start"] > 0 for m in cpu["memory_mb_runs"]) and cpu["peak_rss_mb_median"] > 0
     # the outcome is what the pipeline gives when run directly on the same episode
     cfg = Config()
     ep = simulate_episode(tmp_path / "ep", SimulationSettings(object="seed", kind="tracking", seed=0, frames=60,
