@@ -40,7 +40,7 @@ import torch
 
 from tactile_slam.bench.common import rendered_frames, timing_stats, write_json
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import FrameBuilder
+from tactile_slam.geometry.frame import FrameBuilder, crop_to_contact
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import LoopDetector
 from tactile_slam.loop.retrieval import DescriptorIndex, IndexSettings
@@ -91,7 +91,8 @@ def simulate_keyframes(obj: str, kind: str, n_frames: int, stride: int, seed: in
         if not bool(frame.in_contact[0]):
             continue
         sess = int(session[pick[j]])
-        kfs.append(Keyframe(len(kfs), sess, frame, not kfs or kfs[-1].session != sess, EYE.clone()))
+        # stored as the trackers store keyframes: the maps around the contact
+        kfs.append(Keyframe(len(kfs), sess, crop_to_contact(frame), not kfs or kfs[-1].session != sess, EYE.clone()))
         poses.append(motion.object_T_sensor[idx[j]])
     return kfs, np.asarray(poses)
 
@@ -239,7 +240,8 @@ def score_episode(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, mode: 
 
 
 def timing_vs_size(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, sizes: list[int], queries: int) -> dict:
-    """Median detect time over the last ``queries`` keyframes of maps of each size."""
+    """Median detect time over the last ``queries`` keyframes of maps of each size: the
+    candidates cropped to their contact, the query with its full maps, as in the pipeline."""
     out = {}
     obj_T = torch.as_tensor(obj_T, dtype=torch.float64)
     for n in sizes:
@@ -253,9 +255,10 @@ def timing_vs_size(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, sizes
             det.add(k)
         samples, loops = [], 0
         for k in kfs[n - queries:n]:
+            q = replace(k, maps=k.frame)  # a new keyframe has its full maps until the back end has it
             t0 = time.perf_counter()
-            det.add(k)
-            loops += len(det.detect(k, [r for r in kmap if r < k.id], group, start_T, kmap))
+            det.add(q)
+            loops += len(det.detect(q, [r for r in kmap if r < k.id], group, start_T, kmap))
             samples.append(time.perf_counter() - t0)
         out[str(n)] = {"add_and_detect": timing_stats(samples), "loops": loops, "stats": det.stats.to_dict()}
     return out

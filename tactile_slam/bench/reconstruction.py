@@ -108,7 +108,7 @@ def timing_run(n_touches: int, seed: int, config: Config) -> dict:
     kfs, poses = [], []
     for pose, frame in zip(o_T_s, rendered_frames(renderer, FrameBuilder(config), o_T_s)):
         if bool(frame.contact.any()):
-            kfs.append(Keyframe(id=len(kfs), session=0, frame=frame, new_session=not kfs,
+            kfs.append(Keyframe(id=len(kfs), session=0, maps=frame, new_session=not kfs,
                                 prev_T_kf=torch.eye(4, dtype=torch.float64)))
             poses.append(pose)
     o_T_s = np.stack(poses)

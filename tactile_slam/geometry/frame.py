@@ -28,8 +28,8 @@ class Frame:
 
     Attributes:
         gradients: ``(B, H, W, 2)`` slopes ``(dh/dx, dh/dy)``, px/px; ``None`` in a
-            stored keyframe (:meth:`clone` with ``gradients=False``): nothing after the
-            frame's construction reads them, and they are a quarter of its memory.
+            stored keyframe (:meth:`CroppedFrame.expand`): nothing after the frame's
+            construction reads them.
         height: ``(B, H, W)`` px; the undeformed gel is 0 and pressing is negative.
         contact: ``(B, H, W)`` bool, the eroded contact mask used by every later stage.
         normals: ``(B, H, W, 3)`` gel-surface unit normals (toward the object).
@@ -71,12 +71,11 @@ class Frame:
             i = slice(i, i + 1) if i != -1 else slice(-1, None)
         return self._map(lambda t: t[i])
 
-    def clone(self, gradients: bool = True) -> "Frame":
+    def clone(self) -> "Frame":
         """The frames with maps of their own. ``frames[i]`` is a view that keeps the whole
-        batch's storage alive (about 2.2 MB per 320x240 frame); a record that outlives
-        its batch, such as a keyframe, stores a clone, without the gradients if
-        ``gradients`` is False (0.6 of the 2.2 MB)."""
-        return replace(self._map(torch.clone), **({} if gradients else {"gradients": None}))
+        batch's storage alive (about 2.2 MB per 320x240 frame); a record that outlives its
+        batch stores a clone, or a :class:`CroppedFrame`."""
+        return self._map(torch.clone)
 
     def to(self, device: torch.device | str) -> "Frame":
         return self._map(lambda t: t.to(device))
@@ -92,6 +91,130 @@ class Frame:
                 parts = [getattr(fr, f.name) for fr in frames]
                 kw[f.name] = None if any(p is None for p in parts) else torch.cat(parts)
         return Frame(mm_per_px=frames[0].mm_per_px, **kw)
+
+
+@dataclass
+class CroppedFrame:
+    """One frame's maps inside a box around its contact (``B = 1``), for a record that
+    outlives its batch (a keyframe): contact covers a few percent to a third of a
+    touch's image, so the box holds a fraction of the full maps. Outside the box the
+    gel counts as flat and undeformed: height 0, normal ``(0, 0, 1)``, curvature 0,
+    no contact (:meth:`expand`). The box keeps ``margin`` pixels around the contact
+    (:func:`crop_to_contact`), more than any stage reads beyond a contact pixel
+    (bilinear sampling 1, Sobel and curvature stencils 2), so what those stages compute
+    is unchanged; the full maps outside that margin are not kept.
+
+    Attributes:
+        height: ``(1, h, w)`` px, the box of :attr:`Frame.height`.
+        contact: ``(1, h, w)`` bool.
+        normals: ``(1, h, w, 3)``.
+        curvature: ``(1, h, w)`` 1/px.
+        in_contact, index, timestamp: ``(1,)`` as in :class:`Frame`.
+        mm_per_px: sensor scale.
+        top, left: the box's first row and column in the full image.
+        full_shape: the full image's ``(H, W)``.
+    """
+
+    height: torch.Tensor
+    contact: torch.Tensor
+    normals: torch.Tensor
+    curvature: torch.Tensor
+    in_contact: torch.Tensor
+    index: torch.Tensor
+    timestamp: torch.Tensor
+    mm_per_px: float
+    top: int
+    left: int
+    full_shape: tuple[int, int]
+
+    def __len__(self) -> int:
+        return 1
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """The full image's ``(H, W)``, as :attr:`Frame.shape`."""
+        return tuple(self.full_shape)
+
+    @property
+    def device(self) -> torch.device:
+        return self.height.device
+
+    def expand(self) -> Frame:
+        """The full-size :class:`Frame` (new tensors; gradients ``None``)."""
+        return full_batch([self])
+
+
+def full_batch(parts: list[Frame | CroppedFrame]) -> Frame:
+    """One full-size batch of frames and cropped frames, in order, each crop pasted
+    straight into it (no full-size copy of its own); gradients ``None`` unless every
+    part is a :class:`Frame` with gradients (then this is :meth:`Frame.cat`)."""
+    if not parts:
+        raise InputError("cannot build a batch from an empty list of frames")
+    if all(isinstance(p, Frame) for p in parts):
+        return Frame.cat(parts)
+    (h, w), n = parts[0].shape, sum(len(p) for p in parts)
+    dt, dev = parts[0].height.dtype, parts[0].height.device
+    out = Frame(gradients=None, height=torch.zeros((n, h, w), dtype=dt, device=dev),
+                contact=torch.zeros((n, h, w), dtype=torch.bool, device=dev),
+                normals=torch.zeros((n, h, w, 3), dtype=parts[0].normals.dtype, device=dev),
+                curvature=torch.zeros((n, h, w), dtype=parts[0].curvature.dtype, device=dev),
+                in_contact=torch.cat([p.in_contact for p in parts]), index=torch.cat([p.index for p in parts]),
+                timestamp=torch.cat([p.timestamp for p in parts]), mm_per_px=parts[0].mm_per_px)
+    out.normals[..., 2] = 1.0
+    i = 0
+    for p in parts:
+        if tuple(p.shape) != (h, w):
+            raise InputError(f"frames of different sizes in one batch: {tuple(p.shape)} and {(h, w)}")
+        b = len(p)
+        if isinstance(p, Frame):
+            rows, cols = slice(None), slice(None)
+        else:
+            rows = slice(p.top, p.top + p.height.shape[1])
+            cols = slice(p.left, p.left + p.height.shape[2])
+        for name in ("height", "contact", "normals", "curvature"):
+            getattr(out, name)[i:i + b, rows, cols] = getattr(p, name)
+        i += b
+    return out
+
+
+def own_maps(frame: Frame) -> Frame:
+    """A copy of ``frame``'s maps without its gradients, for a record that outlives its
+    batch (``frames[i]`` is a view that keeps the whole batch alive); nothing after a
+    frame's construction reads its gradients."""
+    return replace(frame, gradients=None).clone()
+
+
+def crop_to_contact(frame: Frame, margin: int = 8) -> CroppedFrame:
+    """Copy one frame's maps (``B = 1``) within ``margin`` pixels of its contact's
+    bounding box (clipped to the image). A frame without contact keeps an empty box.
+
+    Args:
+        frame: a :class:`Frame` with ``B = 1``.
+        margin: pixels kept around the contact box (>= 3: see :class:`CroppedFrame`).
+
+    Returns:
+        a :class:`CroppedFrame` with maps of its own (gradients are not kept).
+    """
+    if len(frame) != 1:
+        raise InputError(f"crop_to_contact takes one frame (B = 1), got B = {len(frame)}")
+    if margin < 3:
+        raise InputError(f"crop margin must be >= 3 px (the widest stencil that reads past the contact), got {margin}")
+    h, w = frame.shape
+    rows = torch.nonzero(frame.contact[0].any(dim=1)).flatten()
+    cols = torch.nonzero(frame.contact[0].any(dim=0)).flatten()
+    if len(rows) == 0:
+        r0 = r1 = c0 = c1 = 0
+    else:
+        r0, r1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)
+        c0, c1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin + 1, w)
+
+    def box(t: torch.Tensor) -> torch.Tensor:
+        return t[:, r0:r1, c0:c1].clone()
+
+    return CroppedFrame(height=box(frame.height), contact=box(frame.contact), normals=box(frame.normals),
+                        curvature=box(frame.curvature), in_contact=frame.in_contact.clone(),
+                        index=frame.index.clone(), timestamp=frame.timestamp.clone(), mm_per_px=frame.mm_per_px,
+                        top=r0, left=c0, full_shape=(h, w))
 
 
 def check_images(bgr: torch.Tensor, shape: tuple[int, int]) -> None:

@@ -35,7 +35,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import Frame
+from tactile_slam.geometry.frame import CroppedFrame, Frame, full_batch
 from tactile_slam.loop.features import Features, SiftSettings, curvature_features, image_features
 from tactile_slam.loop.matching import RansacSettings, match, self_similarity, similarity_to_se3
 from tactile_slam.loop.retrieval import DescriptorIndex, Footprint, IndexSettings, footprints, pose_gate
@@ -227,8 +227,8 @@ class LoopDetector:
         """The keyframe's contact footprint (None without contact); computed once per
         keyframe id and kept, for removed keyframes too."""
         if keyframe.id not in self._footprints:
-            self._footprints[keyframe.id] = footprints(keyframe.frame.height, keyframe.frame.contact,
-                                                       keyframe.frame.mm_per_px / 1000.0)[0]
+            frame = keyframe.frame
+            self._footprints[keyframe.id] = footprints(frame.height, frame.contact, frame.mm_per_px / 1000.0)[0]
         return self._footprints[keyframe.id]
 
     def is_repetitive(self, keyframe: Keyframe) -> bool:
@@ -286,7 +286,7 @@ class LoopDetector:
         t1 = time.perf_counter()
         self.stats.time_retrieval += t1 - t0
         found, inits, inliers = [], [], []
-        shape, s = query.frame.shape, query.frame.mm_per_px / 1000.0
+        shape, s = query.maps.shape, query.maps.mm_per_px / 1000.0
         for r in cands:
             sim = match(self._features[r], q_feats, self.ransac)
             if sim is not None:
@@ -366,7 +366,7 @@ class LoopDetector:
         step = self.config.loop.verify_batch
         out = []
         for a in range(0, len(refs), step):
-            tar = Frame.cat([_check_keyframe(kf) for kf in refs[a:a + step]]).to(prep.device)
+            tar = full_batch([_stored_maps(kf) for kf in refs[a:a + step]]).to(prep.device)
             res = register_prepared(prep, tar, se3.inverse(init_tar_T_ref[a:a + step].double()).to(prep.device),
                                     self.nf_config)
             out.append(replace(res, tar_T_ref=se3.inverse(res.tar_T_ref.double())))
@@ -398,8 +398,13 @@ class LoopDetector:
         return loops
 
 
+def _stored_maps(keyframe: Keyframe) -> Frame | CroppedFrame:
+    """The keyframe's maps as stored (cropped or full), checked to be one frame."""
+    if len(keyframe.maps) != 1:
+        raise LoopError(f"keyframe {keyframe.id} must hold a single frame (B = 1), got B = {len(keyframe.maps)}")
+    return keyframe.maps
+
+
 def _check_keyframe(keyframe: Keyframe) -> Frame:
-    frame = keyframe.frame
-    if len(frame) != 1:
-        raise LoopError(f"keyframe {keyframe.id} must hold a single frame (B = 1), got B = {len(frame)}")
-    return frame
+    _stored_maps(keyframe)
+    return keyframe.frame

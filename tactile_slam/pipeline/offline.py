@@ -177,6 +177,7 @@ class OfflinePipeline:
                 t_back.append(time.perf_counter() - t0)
                 keyframes.append(kf)
                 self.visualizer.on_keyframe(kf)
+                kf.compact()  # from here on it is an earlier keyframe: its maps around the contact
 
         try:
             batches = ([pending] if pending is not None else [])

@@ -8,8 +8,9 @@ as it arrives, publishes a :class:`~tactile_slam.pipeline.stream.PoseEvent` per 
 on :attr:`OnlinePipeline.stream`, and sends every keyframe to the back-end worker.
 
 Keyframes cross the process boundary as one float32 buffer in shared memory per
-keyframe (:func:`pack_keyframe`): the maps are copied once into it, the worker maps the
-same pages, and the pipeline's own record of the keyframe is a view of that buffer.
+keyframe (:func:`pack_keyframe`): the maps around the contact are copied once into it,
+the worker maps the same pages, and the pipeline's own record of the keyframe is a view
+of that buffer.
 
 The worker takes the keyframes queued since its last step as one batch: each gets
 its odometry factor and coverage update, but only the newest gets loop detection
@@ -48,7 +49,7 @@ from tqdm import tqdm
 
 from tactile_slam.backend import BackEnd
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import Frame, InputError
+from tactile_slam.geometry.frame import CroppedFrame, Frame, InputError, crop_to_contact
 from tactile_slam.io.dataset import collate
 from tactile_slam.io.frames import FrameSource
 from tactile_slam.io.replay import RealtimeFeed
@@ -97,8 +98,9 @@ _CHANNELS = (("height", 1), ("normals", 3), ("curvature", 1), ("contact", 1))
 
 @dataclass
 class PackedKeyframe:
-    """A keyframe as one ``(6, H, W)`` float32 shared-memory buffer (height, normals
-    x/y/z, curvature, contact; a keyframe carries no gradients) plus small metadata;
+    """A keyframe as one ``(6, h, w)`` float32 shared-memory buffer of its maps around the
+    contact (height, normals x/y/z, curvature, contact: a :class:`CroppedFrame`, whose
+    box starts at ``top``, ``left`` of a ``full_shape`` image) plus small metadata;
     pickles to a handle of that buffer, not its contents."""
 
     id: int
@@ -109,30 +111,33 @@ class PackedKeyframe:
     timestamp: float
     in_contact: bool
     mm_per_px: float
+    top: int
+    left: int
+    full_shape: tuple[int, int]
     buffer: torch.Tensor
 
 
 def pack_keyframe(kf: Keyframe) -> PackedKeyframe:
-    """Copy a keyframe's maps (``B = 1``) into one shared-memory buffer."""
-    fr = kf.frame
-    if len(fr) != 1:
-        raise ValueError(f"a keyframe holds one frame, got {len(fr)}")
-    h, w = fr.shape
+    """Copy a keyframe's maps (``B = 1``) around its contact into one shared-memory buffer."""
+    if len(kf.maps) != 1:
+        raise ValueError(f"a keyframe holds one frame, got {len(kf.maps)}")
+    crop = kf.maps if isinstance(kf.maps, CroppedFrame) else crop_to_contact(kf.maps)
+    h, w = crop.height.shape[1:]
     buf = torch.empty(sum(c for _, c in _CHANNELS), h, w, dtype=torch.float32).share_memory_()
-    buf[0] = fr.height[0]
-    buf[1:4] = fr.normals[0].permute(2, 0, 1)
-    buf[4] = fr.curvature[0]
-    buf[5] = fr.contact[0]
+    buf[0] = crop.height[0]
+    buf[1:4] = crop.normals[0].permute(2, 0, 1)
+    buf[4] = crop.curvature[0]
+    buf[5] = crop.contact[0]
     return PackedKeyframe(kf.id, kf.session, kf.new_session, kf.prev_T_kf.cpu().numpy().copy(),
-                          int(fr.index[0]), float(fr.timestamp[0]), bool(fr.in_contact[0]), fr.mm_per_px, buf)
+                          int(crop.index[0]), float(crop.timestamp[0]), bool(crop.in_contact[0]), crop.mm_per_px,
+                          crop.top, crop.left, tuple(crop.full_shape), buf)
 
 
 def unpack_keyframe(p: PackedKeyframe) -> Keyframe:
-    """A :class:`Keyframe` whose maps are views of the packed buffer (the contact mask
-    is the only copy)."""
+    """A :class:`Keyframe` whose cropped maps are views of the packed buffer (the contact
+    mask is the only copy)."""
     b = p.buffer
-    frame = Frame(
-        gradients=None,
+    crop = CroppedFrame(
         height=b[0][None],
         contact=(b[5] > 0.5)[None],
         normals=b[1:4].permute(1, 2, 0)[None],
@@ -141,8 +146,11 @@ def unpack_keyframe(p: PackedKeyframe) -> Keyframe:
         index=torch.tensor([p.index], dtype=torch.int64),
         timestamp=torch.tensor([p.timestamp], dtype=torch.float64),
         mm_per_px=p.mm_per_px,
+        top=p.top,
+        left=p.left,
+        full_shape=p.full_shape,
     )
-    return Keyframe(p.id, p.session, frame, p.new_session, torch.as_tensor(p.prev_T_kf, dtype=torch.float64))
+    return Keyframe(p.id, p.session, crop, p.new_session, torch.as_tensor(p.prev_T_kf, dtype=torch.float64))
 
 
 # ---------------------------------------------------------------- poses on the tracker side

@@ -67,7 +67,7 @@ def build_coverage(keyframes: Sequence[Keyframe], start_T_kf: torch.Tensor, conf
         keyframes: the group's keyframes in insertion order.
         start_T_kf: ``(K, 4, 4)`` float64 poses (keyframe -> group start frame), metres.
     """
-    cs = CoverageSet(config, device=keyframes[0].frame.device)
+    cs = CoverageSet(config, device=keyframes[0].maps.device)
     for kf, pose in zip(keyframes, start_T_kf):
         cs.add(kf, pose)
     return cs
@@ -139,8 +139,9 @@ def fuse(
     boxes = {t: contact_box(by_id[t].frame.contact[0].to(coverage.device)) for t in coverage.active}
     out = []
     for t in coverage.active:
-        mask = by_id[t].frame.contact[0].to(coverage.device)
-        grid = point_map(by_id[t].frame.height.to(coverage.device, torch.float32), s)[0]  # (H, W, 3)
+        frame = by_id[t].frame
+        mask = frame.contact[0].to(coverage.device)
+        grid = point_map(frame.height.to(coverage.device, torch.float32), s)[0]  # (H, W, 3)
         p = grid[mask]  # (N, 3)
         w_t = coverage.weights(t)[mask]
         pose_t = coverage.pose(t)

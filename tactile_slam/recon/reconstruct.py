@@ -99,13 +99,13 @@ def reconstruct(
     label = next(iter(parts)) if group is None else group
     if label not in parts:
         raise ReconError(f"unknown group {label}; groups are {sorted(parts)}")
-    idx = [i for i in parts[label] if bool(keyframes[i].frame.contact.any())]
+    idx = [i for i in parts[label] if keyframes[i].has_contact]
     if len(idx) < 2:
         raise ReconError(
             f"reconstruction needs at least 2 keyframes with contact in group {label}, got {len(idx)}"
         )
     kfs = [keyframes[i] for i in idx]
-    grp_poses = poses[idx].to(kfs[0].frame.device)
+    grp_poses = poses[idx].to(kfs[0].maps.device)
     stats: dict = {"group": label, "keyframes": len(kfs), "groups": len(parts)}
     t0 = time.perf_counter()
     coverage = build_coverage(kfs, grp_poses, config)
@@ -141,7 +141,7 @@ def reconstruct_groups(
         raise ReconError("no keyframes to reconstruct: the run produced no contact keyframes")
     out = {}
     for label, idx in split_groups(keyframes, groups).items():
-        if sum(bool(keyframes[i].frame.contact.any()) for i in idx) >= 2:
+        if sum(keyframes[i].has_contact for i in idx) >= 2:
             out[label] = reconstruct(keyframes, start_T_kf, config, groups, group=label)
     if not out:
         raise ReconError("no group has at least 2 keyframes with contact")

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import torch
 
-from tactile_slam.geometry.frame import Frame
+from tactile_slam.geometry.frame import Frame, own_maps
 from tactile_slam.tracking.keyframe import Keyframe
 from tactile_slam.tracking.tracker import Registrar, TrackStep, check_keep_contact, holds_contact
 
@@ -34,7 +34,7 @@ class FrameToFrameTracker:
             return TrackStep(index=index, in_contact=False)
         if self.prev_prepared is None:
             eye = torch.eye(4, dtype=torch.float64)
-            self.head = Keyframe(self.next_id, self.next_id, frame.clone(gradients=False), True, eye)  # own maps
+            self.head = Keyframe(self.next_id, self.next_id, own_maps(frame), True, eye)
             self.next_id += 1
             self.head_T_prev, self.prev_prepared = eye, self.registrar.prepare(frame)
             return TrackStep(index, True, eye, self.head.id, self.head.session, keyframes=[self.head], is_keyframe=True)

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import torch
 
-from tactile_slam.geometry.frame import Frame
+from tactile_slam.geometry.frame import CroppedFrame, Frame, crop_to_contact
 
 
 @dataclass
@@ -17,8 +17,10 @@ class Keyframe:
         id: keyframe id, sequential over the whole run.
         session: tracking-session id (a contiguous contact period tracked without an
             unrecoverable failure); the session's first keyframe is its head.
-        frame: the keyframe's geometry, a :class:`Frame` with ``B = 1`` and maps of its
-            own; the trackers store it without gradients (``None``), which nothing reads.
+        maps: the keyframe's geometry as stored: a :class:`Frame` with ``B = 1``, or a
+            :class:`CroppedFrame` (what the trackers store: the maps around the
+            contact only, a fraction of the memory on a long scan). Read it through
+            :attr:`frame`.
         new_session: True for a session head.
         prev_T_kf: ``(4, 4)`` float64, metres: this keyframe's pose in the previous
             keyframe of the same session (the odometry measurement); identity for a
@@ -28,11 +30,27 @@ class Keyframe:
 
     id: int
     session: int
-    frame: Frame
+    maps: Frame | CroppedFrame
     new_session: bool
     prev_T_kf: torch.Tensor
     image: torch.Tensor | None = None
 
     @property
+    def frame(self) -> Frame:
+        """The full-size geometry, ``B = 1`` (a cropped keyframe builds new tensors on each
+        access: bind it once where several maps are read)."""
+        return self.maps.expand() if isinstance(self.maps, CroppedFrame) else self.maps
+
+    def compact(self, margin: int = 8) -> None:
+        """Keep only the maps around the contact from now on (:func:`crop_to_contact`):
+        what a pipeline does once the back end has taken the keyframe in."""
+        if isinstance(self.maps, Frame):
+            self.maps = crop_to_contact(self.maps, margin)
+
+    @property
     def video_index(self) -> int:
-        return int(self.frame.index[0])
+        return int(self.maps.index[0])
+
+    @property
+    def has_contact(self) -> bool:
+        return bool(self.maps.contact.any())

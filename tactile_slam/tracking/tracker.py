@@ -39,7 +39,7 @@ from typing import Any, Protocol
 import torch
 
 from tactile_slam.config import NormalFlowConfig, TrackingConfig
-from tactile_slam.geometry.frame import Frame
+from tactile_slam.geometry.frame import Frame, own_maps
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import prepare_reference, register_prepared
 from tactile_slam.registration.result import RegistrationResult, pose_error
@@ -195,9 +195,9 @@ class Tracker:
         if new_session:
             self.next_session += 1
         session = self.next_session - 1
-        # a clone without gradients: the frame is usually a view of its geometry batch, which
-        # it would keep alive, and nothing reads a keyframe's slopes
-        kf = Keyframe(self.next_keyframe_id, session, frame.clone(gradients=False), new_session, prev_T_kf.clone())
+        # a copy without gradients: the frame is usually a view of its geometry batch, which
+        # it would keep alive; the pipeline crops it to the contact once the back end has it
+        kf = Keyframe(self.next_keyframe_id, session, own_maps(frame), new_session, prev_T_kf.clone())
         self.next_keyframe_id += 1
         self.kf = kf
         self.kf_prepared = prepared

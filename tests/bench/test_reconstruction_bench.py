@@ -19,7 +19,7 @@ def keyframe(kf_id: int, video_index: int) -> Keyframe:
     cfg = Config()
     frame = FrameBuilder(cfg).from_gradients(torch.zeros(1, *cfg.sensor.shape, 2),
                                              index=torch.tensor([video_index]))
-    return Keyframe(id=kf_id, session=kf_id, frame=frame, new_session=True, prev_T_kf=torch.eye(4, dtype=torch.float64))
+    return Keyframe(id=kf_id, session=kf_id, maps=frame, new_session=True, prev_T_kf=torch.eye(4, dtype=torch.float64))
 
 
 def tiny_args(tmp_path) -> argparse.Namespace:

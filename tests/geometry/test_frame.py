@@ -1,4 +1,5 @@
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -7,7 +8,7 @@ import torch
 
 from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError
+from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError, crop_to_contact, full_batch
 
 from . import presses
 from .surfaces import central_gradients, spherical_cap
@@ -267,9 +268,90 @@ def test_frames_without_gradients():
     full = Frame(gradients=torch.rand(2, 5, 6, 2), height=z, contact=z > 0.5, normals=torch.rand(2, 5, 6, 3),
                  curvature=-z, in_contact=torch.ones(2, dtype=torch.bool), index=torch.arange(2),
                  timestamp=torch.arange(2, dtype=torch.float64), mm_per_px=0.0634)
-    bare = full[1].clone(gradients=False)
+    bare = replace(full[1].clone(), gradients=None)
     assert bare.gradients is None and len(bare) == 1 and bare.shape == (5, 6) and bare.device == full.device
     assert torch.equal(bare.normals, full.normals[1:]) and bare.to("cpu")[0].gradients is None
     both = Frame.cat([full[0], bare])
     assert both.gradients is None and torch.equal(both.height, full.height)
     assert torch.equal(Frame.cat([full[0], full[1]]).gradients, full.gradients)
+
+
+def _touch(dtype=torch.float32, device="cpu", rows=(20, 30), cols=(40, 52), shape=(60, 80), seed=0):
+    """One frame with random maps everywhere and a rectangular contact."""
+    g = torch.Generator().manual_seed(seed)
+    h, w = shape
+    contact = torch.zeros(1, h, w, dtype=torch.bool)
+    contact[0, rows[0]:rows[1], cols[0]:cols[1]] = True
+    return Frame(gradients=torch.randn(1, h, w, 2, generator=g, dtype=dtype),
+                 height=torch.randn(1, h, w, generator=g, dtype=dtype), contact=contact,
+                 normals=torch.randn(1, h, w, 3, generator=g, dtype=dtype),
+                 curvature=torch.randn(1, h, w, generator=g, dtype=dtype), in_contact=torch.tensor([True]),
+                 index=torch.tensor([42]), timestamp=torch.tensor([1.5], dtype=torch.float64),
+                 mm_per_px=0.0634).to(device)
+
+
+class TestCropToContact:
+    """Keyframes store their maps around the contact (:class:`CroppedFrame`)."""
+
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_box_and_expand(self, dtype, device):
+        fr = _touch(dtype, device)
+        crop = crop_to_contact(fr, margin=5)
+        assert (crop.top, crop.left, tuple(crop.height.shape)) == (15, 35, (1, 20, 22))
+        assert crop.normals.shape == (1, 20, 22, 3) and crop.contact.dtype == torch.bool
+        assert len(crop) == 1 and crop.shape == (60, 80) and crop.device == fr.device
+        assert crop.height.dtype == dtype and crop.height.untyped_storage().nbytes() == 20 * 22 * crop.height.element_size()
+        full = crop.expand()
+        assert full.gradients is None and full.shape == fr.shape and full.height.dtype == dtype
+        box = (slice(None), slice(15, 35), slice(35, 57))
+        for name in ("height", "normals", "curvature", "contact"):
+            assert torch.equal(getattr(full, name)[box], getattr(fr, name)[box])
+        assert torch.equal(full.contact, fr.contact)
+        outside = torch.ones(1, 60, 80, dtype=torch.bool, device=device)
+        outside[box] = False
+        assert (full.height[outside] == 0).all() and (full.curvature[outside] == 0).all()
+        flat = torch.tensor([0.0, 0.0, 1.0], dtype=dtype, device=device)
+        assert torch.equal(full.normals[outside], flat.expand(int(outside.sum()), 3))
+        assert (int(full.index[0]), float(full.timestamp[0]), bool(full.in_contact[0])) == (42, 1.5, True)
+
+    def test_box_is_clipped_at_the_image_edge(self):
+        crop = crop_to_contact(_touch(rows=(0, 4), cols=(75, 80)))
+        assert (crop.top, crop.left, tuple(crop.height.shape)) == (0, 67, (1, 12, 13))
+        assert torch.equal(crop.expand().contact, _touch(rows=(0, 4), cols=(75, 80)).contact)
+
+    def test_no_contact_keeps_an_empty_box(self):
+        fr = replace(_touch(), contact=torch.zeros(1, 60, 80, dtype=torch.bool))
+        crop = crop_to_contact(fr)
+        assert crop.height.numel() == 0
+        full = crop.expand()
+        assert not full.contact.any() and (full.height == 0).all() and (full.normals[..., 2] == 1).all()
+
+    def test_owns_its_maps(self):
+        batch = Frame.cat([_touch(seed=i) for i in range(3)])
+        crop = crop_to_contact(batch[1])
+        assert crop.height.untyped_storage().data_ptr() != batch.height.untyped_storage().data_ptr()
+        batch.height.zero_()
+        assert crop.height.abs().sum() > 0
+
+    def test_full_batch_of_frames_and_crops(self, device):
+        """Crops pasted into one batch equal their expansions; full frames are copied."""
+        a, b, c = (_touch(device=device, seed=i) for i in range(3))
+        crop_b = crop_to_contact(b)
+        mixed = full_batch([a, crop_b, Frame.cat([c, a])])
+        want = Frame.cat([replace(a, gradients=None), crop_b.expand(), replace(c, gradients=None),
+                          replace(a, gradients=None)])
+        assert len(mixed) == 4 and mixed.gradients is None
+        for name in ("height", "contact", "normals", "curvature", "in_contact", "index", "timestamp"):
+            assert torch.equal(getattr(mixed, name), getattr(want, name)), name
+        assert torch.equal(full_batch([a, c]).gradients, Frame.cat([a, c]).gradients)  # all full: Frame.cat
+        with pytest.raises(InputError, match="empty"):
+            full_batch([])
+        with pytest.raises(InputError, match="different sizes"):
+            full_batch([crop_b, _touch(shape=(40, 80), rows=(5, 9), device=device)])
+
+    def test_exceptions(self):
+        two = Frame.cat([_touch(), _touch()])
+        with pytest.raises(InputError, match="one frame"):
+            crop_to_contact(two)
+        with pytest.raises(InputError, match="margin"):
+            crop_to_contact(_touch(), margin=2)

@@ -33,7 +33,7 @@ def rect(r0, r1, c0, c1) -> torch.Tensor:
 
 def keyframe(kf_id: int, contact: torch.Tensor, device="cpu") -> Keyframe:
     frame = FrameBuilder(CFG).from_gradients(torch.zeros(1, H, W, 2), contact=contact[None])
-    return Keyframe(id=kf_id, session=0, frame=frame.to(device), new_session=kf_id == 0,
+    return Keyframe(id=kf_id, session=0, maps=frame.to(device), new_session=kf_id == 0,
                     prev_T_kf=torch.eye(4, dtype=torch.float64))
 
 

@@ -66,7 +66,7 @@ def test_finds_true_loop_with_ground_truth_pose(scene):
 def test_detection_on_device(scene, device):
     """Keyframes living on ``device``: features come from the CPU, verification runs
     on the device, and the loop is the same."""
-    moved = {i: replace(k, frame=k.frame.to(device)) for i, k in scene.items()}
+    moved = {i: replace(k, maps=k.frame.to(device)) for i, k in scene.items()}
     det = _detector(moved)
     loops = [lp for lp in det.detect(moved[2], [0, 1, 3], {}, {}, moved) if lp.ref_id == 0]
     assert len(loops) == 1 and loops[0].ref_T_tar.device.type == "cpu"

@@ -15,7 +15,7 @@ from tactile_slam.cli.devices import device_arg
 from tactile_slam.cli.main import main
 from tactile_slam.config import Config
 from tactile_slam.eval.tracking_metrics import per_axis_mae
-from tactile_slam.geometry.frame import InputError
+from tactile_slam.geometry.frame import CroppedFrame, InputError
 from tactile_slam.io.gradients import GradientSequence
 from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
 from tactile_slam.sim.episode import SimulationSettings, read_episode, simulate_episode
@@ -64,6 +64,9 @@ def test_tracking_episode_accuracy(tracking_episode, tmp_path, method):
     mae = per_axis_mae(res.poses, gt, has)
     assert max(mae["x_mm"], mae["y_mm"], mae["z_mm"]) < 0.05, mae
     assert max(mae["rx_deg"], mae["ry_deg"], mae["rz_deg"]) < 0.5, mae
+    # keyframes are kept around their contact once the back end has them (the mesh below is fused from those)
+    assert res.keyframes and all(isinstance(k.maps, CroppedFrame) for k in res.keyframes)
+    assert sum(k.maps.height.numel() for k in res.keyframes) < len(res.keyframes) * 240 * 320
     stats = json.loads((tmp_path / "stats.json").read_text())
     assert STATS_KEYS <= set(stats) and stats["completed"]
     for name in ("poses.npy", "trajectory_tum.txt", "keyframes.json", "config.yaml"):

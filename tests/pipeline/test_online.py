@@ -8,6 +8,7 @@ import os
 import signal
 import threading
 import time
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -292,18 +293,42 @@ def make_keyframe(kf_id, session, new_session, dtype=torch.float32, seed=0):
 def test_pack_round_trip_one_shared_buffer(dtype):
     kf = make_keyframe(3, 1, False, dtype)
     packed = pack_keyframe(kf)
-    assert packed.buffer.is_shared() and packed.buffer.shape == (6, 6, 8)
+    assert packed.buffer.is_shared() and packed.buffer.shape == (6, 6, 8)  # contact reaches every border
     back = unpack_keyframe(packed)
     assert back.frame.gradients is None and back.frame.shape == (6, 8) and len(back.frame) == 1
     for name in ("height", "normals", "curvature"):
-        got, want = getattr(back.frame, name), getattr(kf.frame, name)
-        assert got.shape == want.shape and got.data_ptr() >= packed.buffer.data_ptr()  # views, no copy
+        stored, got, want = getattr(back.maps, name), getattr(back.frame, name), getattr(kf.frame, name)
+        assert stored.data_ptr() >= packed.buffer.data_ptr()  # the record is a view of the buffer, no copy
+        assert got.shape == want.shape
         torch.testing.assert_close(got, want.float())
     assert torch.equal(back.frame.contact, kf.frame.contact) and back.frame.contact.dtype == torch.bool
     assert (back.id, back.session, back.new_session, back.video_index) == (3, 1, False, 10)
     torch.testing.assert_close(back.prev_T_kf, kf.prev_T_kf)
     with pytest.raises(ValueError, match="one frame"):
         pack_keyframe(Keyframe(0, 0, kf.frame.cat([kf.frame, kf.frame]), True, kf.prev_T_kf))
+
+
+def test_pack_holds_the_contact_box_only():
+    """A small touch crosses the process boundary as its box plus the margin; the worker's
+    full maps equal the tracker's within that box and are flat gel outside it."""
+    kf = make_keyframe(0, 0, True)
+    g = torch.Generator().manual_seed(1)
+    h, w = 60, 80
+    contact = torch.zeros(1, h, w, dtype=torch.bool)
+    contact[0, 20:30, 40:52] = True
+    frame = replace(kf.frame, gradients=None, height=torch.randn(1, h, w, generator=g), contact=contact,
+                    normals=torch.randn(1, h, w, 3, generator=g), curvature=torch.randn(1, h, w, generator=g))
+    packed = pack_keyframe(Keyframe(0, 0, frame, True, kf.prev_T_kf))
+    assert packed.buffer.shape == (6, 10 + 16, 12 + 16) and (packed.top, packed.left) == (12, 32)
+    full = unpack_keyframe(packed).frame
+    box = (slice(None), slice(12, 38), slice(32, 60))
+    for name in ("height", "normals", "curvature"):
+        torch.testing.assert_close(getattr(full, name)[box], getattr(frame, name)[box])
+    assert torch.equal(full.contact, contact)
+    outside = torch.ones(1, h, w, dtype=torch.bool)
+    outside[box] = False
+    assert (full.height[outside] == 0).all() and (full.curvature[outside] == 0).all()
+    assert torch.equal(full.normals[outside], torch.tensor([0.0, 0.0, 1.0]).expand(int(outside.sum()), 3))
 
 
 def test_keyframe_map_chains_until_the_back_end_answers():

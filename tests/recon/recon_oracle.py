@@ -72,7 +72,7 @@ def sphere_keyframes(
     poses, kfs = [], []
     for i, d in enumerate(fibonacci_directions(n)):
         poses.append(sensor_pose(d, radius_mm / 1000, depth_mm / 1000, rng.uniform(0, 2 * math.pi)))
-        kfs.append(Keyframe(id=i, session=0, frame=frames[i], new_session=i == 0,
+        kfs.append(Keyframe(id=i, session=0, maps=frames[i], new_session=i == 0,
                             prev_T_kf=torch.eye(4, dtype=torch.float64)))
     return kfs, torch.from_numpy(np.stack(poses))
 

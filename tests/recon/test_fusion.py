@@ -26,7 +26,7 @@ def flat_keyframe(kf_id: int, r0, r1, c0, c1, device="cpu") -> Keyframe:
     contact = torch.zeros(1, H, W, dtype=torch.bool)
     contact[0, r0:r1, c0:c1] = True
     frame = FrameBuilder(CFG).from_gradients(torch.zeros(1, H, W, 2), contact=contact)
-    return Keyframe(id=kf_id, session=0, frame=frame.to(device), new_session=False,
+    return Keyframe(id=kf_id, session=0, maps=frame.to(device), new_session=False,
                     prev_T_kf=torch.eye(4, dtype=torch.float64))
 
 

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from tactile_slam.config import NormalFlowConfig
-from tactile_slam.geometry.frame import Frame
+from tactile_slam.geometry.frame import Frame, crop_to_contact
 from tactile_slam.registration.normalflow import (
     normalflow,
     prepare_reference,
@@ -170,6 +170,37 @@ class TestCpuChunks:
         ref, tars, _, _ = scene
         with pytest.raises(RegistrationError, match="cannot be paired"):
             register(Frame.cat([ref] * 4), tars[:3], None, NormalFlowConfig(n_samples=1000, cpu_chunk_samples=1000))
+
+
+def _beyond_margin(frames: Frame, margin: int, seed: int) -> Frame:
+    """``frames`` with random height, normals and curvature more than ``margin`` pixels
+    outside each frame's contact box, where a :class:`CroppedFrame` keeps nothing."""
+    g = torch.Generator().manual_seed(seed)
+    far = torch.ones_like(frames.contact)
+    for i in range(len(frames)):
+        crop = crop_to_contact(frames[i], margin)
+        far[i, crop.top:crop.top + crop.height.shape[1], crop.left:crop.left + crop.height.shape[2]] = False
+    noise = {name: torch.randn(getattr(frames, name).shape, generator=g, dtype=getattr(frames, name).dtype)
+             for name in ("height", "normals", "curvature")}
+    return replace(frames, height=torch.where(far, noise["height"], frames.height),
+                   normals=torch.where(far[..., None], noise["normals"], frames.normals),
+                   curvature=torch.where(far, noise["curvature"], frames.curvature))
+
+
+def test_nothing_beyond_the_crop_margin_is_read(scene):
+    """Keyframes are stored cropped to their contact plus a margin (``crop_to_contact``,
+    8 px): references and targets rebuilt from crops register exactly as the full frames,
+    even when the full frames hold arbitrary values beyond the margin."""
+    ref, tars, _, init = scene
+    ref_n, tars_n = _beyond_margin(ref, 8, 0), _beyond_margin(tars, 8, 1)
+    assert not torch.equal(tars_n.normals, tars.normals)  # the noise is where the crops keep nothing
+
+    def rebuilt(frames: Frame) -> Frame:
+        return Frame.cat([crop_to_contact(frames[i]).expand() for i in range(len(frames))])
+
+    full, cropped = register(ref_n, tars_n, init), register(rebuilt(ref_n), rebuilt(tars_n), init)
+    for name in ("tar_T_ref", "ccs", "scr", "n_shared", "iterations", "ok"):
+        assert torch.equal(getattr(full, name), getattr(cropped, name)), name
 
 
 def test_prepared_reference_is_reused(scene, batched):

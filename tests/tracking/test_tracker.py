@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from tactile_slam.config import TrackingConfig
-from tactile_slam.geometry.frame import Frame
+from tactile_slam.geometry.frame import CroppedFrame, Frame
 from tactile_slam.registration.result import RegistrationError, RegistrationResult, pose_error
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
 from tactile_slam.tracking.tracker import Tracker
@@ -214,7 +214,8 @@ def test_frame_to_frame_baseline_keeps_contact_the_same_way():
 
 
 def _owns_storage(fr: Frame) -> bool:
-    maps = (fr.height, fr.contact, fr.normals, fr.curvature) + (() if fr.gradients is None else (fr.gradients,))
+    grads = getattr(fr, "gradients", None)
+    maps = (fr.height, fr.contact, fr.normals, fr.curvature) + (() if grads is None else (grads,))
     return all(m.untyped_storage().nbytes() == m.numel() * m.element_size() for m in maps)
 
 
@@ -222,14 +223,18 @@ def test_keyframes_do_not_keep_their_geometry_batch_alive():
     """The pipeline hands the trackers ``batch[i]``, a view of a geometry batch. A
     keyframe holding that view kept all of the batch's maps alive: a 6000-frame scan
     grew to 10 GB. Keyframes own copies of their own frame's maps, without the gradients
-    (nothing reads a keyframe's slopes)."""
+    (nothing reads a keyframe's slopes), and keep the contact's surroundings only once
+    compacted (:class:`CroppedFrame`)."""
     batch = Frame.cat([frame(i, c) for i, c in enumerate([True, True, False, True, True, True])])
     assert not _owns_storage(batch[0])  # the view the trackers are given
     tr = Tracker(TrackingConfig(), ScriptedRegistrar(lambda r, t: t == 4))
     kfs = [k for i in range(len(batch)) for k in tr.step(batch[i]).keyframes] + tr.finish()
     f2f = FrameToFrameTracker(ScriptedRegistrar(lambda r, t: False), KEEP)
     kfs += [k for i in range(len(batch)) for k in f2f.step(batch[i]).keyframes]
-    assert len(kfs) >= 4 and all(_owns_storage(k.frame) and k.frame.gradients is None for k in kfs)
+    assert len(kfs) >= 4 and all(_owns_storage(k.maps) and k.maps.gradients is None for k in kfs)
+    torch.testing.assert_close(kfs[0].frame.normals, batch[0].normals)
+    kfs[0].compact()  # what the pipeline does once the back end has the keyframe
+    assert isinstance(kfs[0].maps, CroppedFrame) and _owns_storage(kfs[0].maps)
     torch.testing.assert_close(kfs[0].frame.normals, batch[0].normals)
 
 
