@@ -105,24 +105,14 @@ class CroppedFrame:
     is unchanged; the full maps outside that margin are not kept.
 
     Attributes:
-        height: ``(1, h, w)`` px, the box of :attr:`Frame.height`.
-        contact: ``(1, h, w)`` bool.
-        normals: ``(1, h, w, 3)``.
-        curvature: ``(1, h, w)`` 1/px.
-        in_contact, index, timestamp: ``(1,)`` as in :class:`Frame`.
-        mm_per_px: sensor scale.
+        box: the maps inside the box, a :class:`Frame` with ``B = 1`` of size ``(h, w)``
+            and no gradients (its ``index``, ``timestamp`` and ``in_contact`` are the
+            frame's).
         top, left: the box's first row and column in the full image.
         full_shape: the full image's ``(H, W)``.
     """
 
-    height: torch.Tensor
-    contact: torch.Tensor
-    normals: torch.Tensor
-    curvature: torch.Tensor
-    in_contact: torch.Tensor
-    index: torch.Tensor
-    timestamp: torch.Tensor
-    mm_per_px: float
+    box: Frame
     top: int
     left: int
     full_shape: tuple[int, int]
@@ -137,7 +127,11 @@ class CroppedFrame:
 
     @property
     def device(self) -> torch.device:
-        return self.height.device
+        return self.box.device
+
+    @property
+    def mm_per_px(self) -> float:
+        return self.box.mm_per_px
 
     def expand(self) -> Frame:
         """The full-size :class:`Frame` (new tensors; gradients ``None``)."""
@@ -153,26 +147,25 @@ def full_batch(parts: list[Frame | CroppedFrame]) -> Frame:
     if all(isinstance(p, Frame) for p in parts):
         return Frame.cat(parts)
     (h, w), n = parts[0].shape, sum(len(p) for p in parts)
-    dt, dev = parts[0].height.dtype, parts[0].height.device
-    out = Frame(gradients=None, height=torch.zeros((n, h, w), dtype=dt, device=dev),
+    maps = [p.box if isinstance(p, CroppedFrame) else p for p in parts]
+    first, dev = maps[0], parts[0].device
+    out = Frame(gradients=None, height=torch.zeros((n, h, w), dtype=first.height.dtype, device=dev),
                 contact=torch.zeros((n, h, w), dtype=torch.bool, device=dev),
-                normals=torch.zeros((n, h, w, 3), dtype=parts[0].normals.dtype, device=dev),
-                curvature=torch.zeros((n, h, w), dtype=parts[0].curvature.dtype, device=dev),
-                in_contact=torch.cat([p.in_contact for p in parts]), index=torch.cat([p.index for p in parts]),
-                timestamp=torch.cat([p.timestamp for p in parts]), mm_per_px=parts[0].mm_per_px)
+                normals=torch.zeros((n, h, w, 3), dtype=first.normals.dtype, device=dev),
+                curvature=torch.zeros((n, h, w), dtype=first.curvature.dtype, device=dev),
+                in_contact=torch.cat([m.in_contact for m in maps]), index=torch.cat([m.index for m in maps]),
+                timestamp=torch.cat([m.timestamp for m in maps]), mm_per_px=first.mm_per_px)
     out.normals[..., 2] = 1.0
     i = 0
-    for p in parts:
+    for p, m in zip(parts, maps):
         if tuple(p.shape) != (h, w):
             raise InputError(f"frames of different sizes in one batch: {tuple(p.shape)} and {(h, w)}")
         b = len(p)
-        if isinstance(p, Frame):
-            rows, cols = slice(None), slice(None)
-        else:
-            rows = slice(p.top, p.top + p.height.shape[1])
-            cols = slice(p.left, p.left + p.height.shape[2])
+        rows, cols = slice(None), slice(None)
+        if isinstance(p, CroppedFrame):
+            rows, cols = slice(p.top, p.top + m.shape[0]), slice(p.left, p.left + m.shape[1])
         for name in ("height", "contact", "normals", "curvature"):
-            getattr(out, name)[i:i + b, rows, cols] = getattr(p, name)
+            getattr(out, name)[i:i + b, rows, cols] = getattr(m, name)
         i += b
     return out
 
@@ -208,13 +201,9 @@ def crop_to_contact(frame: Frame, margin: int = 8) -> CroppedFrame:
         r0, r1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)
         c0, c1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin + 1, w)
 
-    def box(t: torch.Tensor) -> torch.Tensor:
-        return t[:, r0:r1, c0:c1].clone()
-
-    return CroppedFrame(height=box(frame.height), contact=box(frame.contact), normals=box(frame.normals),
-                        curvature=box(frame.curvature), in_contact=frame.in_contact.clone(),
-                        index=frame.index.clone(), timestamp=frame.timestamp.clone(), mm_per_px=frame.mm_per_px,
-                        top=r0, left=c0, full_shape=(h, w))
+    box = replace(frame, gradients=None, height=frame.height[:, r0:r1, c0:c1], contact=frame.contact[:, r0:r1, c0:c1],
+                  normals=frame.normals[:, r0:r1, c0:c1], curvature=frame.curvature[:, r0:r1, c0:c1]).clone()
+    return CroppedFrame(box=box, top=r0, left=c0, full_shape=(h, w))
 
 
 def check_images(bgr: torch.Tensor, shape: tuple[int, int]) -> None:

@@ -122,14 +122,14 @@ def pack_keyframe(kf: Keyframe) -> PackedKeyframe:
     if len(kf.maps) != 1:
         raise ValueError(f"a keyframe holds one frame, got {len(kf.maps)}")
     crop = kf.maps if isinstance(kf.maps, CroppedFrame) else crop_to_contact(kf.maps)
-    h, w = crop.height.shape[1:]
-    buf = torch.empty(sum(c for _, c in _CHANNELS), h, w, dtype=torch.float32).share_memory_()
-    buf[0] = crop.height[0]
-    buf[1:4] = crop.normals[0].permute(2, 0, 1)
-    buf[4] = crop.curvature[0]
-    buf[5] = crop.contact[0]
+    box = crop.box
+    buf = torch.empty(sum(c for _, c in _CHANNELS), *box.shape, dtype=torch.float32).share_memory_()
+    buf[0] = box.height[0]
+    buf[1:4] = box.normals[0].permute(2, 0, 1)
+    buf[4] = box.curvature[0]
+    buf[5] = box.contact[0]
     return PackedKeyframe(kf.id, kf.session, kf.new_session, kf.prev_T_kf.cpu().numpy().copy(),
-                          int(crop.index[0]), float(crop.timestamp[0]), bool(crop.in_contact[0]), crop.mm_per_px,
+                          int(box.index[0]), float(box.timestamp[0]), bool(box.in_contact[0]), box.mm_per_px,
                           crop.top, crop.left, tuple(crop.full_shape), buf)
 
 
@@ -137,7 +137,8 @@ def unpack_keyframe(p: PackedKeyframe) -> Keyframe:
     """A :class:`Keyframe` whose cropped maps are views of the packed buffer (the contact
     mask is the only copy)."""
     b = p.buffer
-    crop = CroppedFrame(
+    box = Frame(
+        gradients=None,
         height=b[0][None],
         contact=(b[5] > 0.5)[None],
         normals=b[1:4].permute(1, 2, 0)[None],
@@ -146,10 +147,8 @@ def unpack_keyframe(p: PackedKeyframe) -> Keyframe:
         index=torch.tensor([p.index], dtype=torch.int64),
         timestamp=torch.tensor([p.timestamp], dtype=torch.float64),
         mm_per_px=p.mm_per_px,
-        top=p.top,
-        left=p.left,
-        full_shape=p.full_shape,
     )
+    crop = CroppedFrame(box=box, top=p.top, left=p.left, full_shape=p.full_shape)
     return Keyframe(p.id, p.session, crop, p.new_session, torch.as_tensor(p.prev_T_kf, dtype=torch.float64))
 
 

@@ -49,8 +49,13 @@ class Keyframe:
 
     @property
     def video_index(self) -> int:
-        return int(self.maps.index[0])
+        return int(self._stored.index[0])
 
     @property
     def has_contact(self) -> bool:
-        return bool(self.maps.contact.any())
+        return bool(self._stored.contact.any())
+
+    @property
+    def _stored(self) -> Frame:
+        """The stored maps: the full frame, or a crop's box."""
+        return self.maps.box if isinstance(self.maps, CroppedFrame) else self.maps

@@ -297,10 +297,12 @@ class TestCropToContact:
     def test_box_and_expand(self, dtype, device):
         fr = _touch(dtype, device)
         crop = crop_to_contact(fr, margin=5)
-        assert (crop.top, crop.left, tuple(crop.height.shape)) == (15, 35, (1, 20, 22))
-        assert crop.normals.shape == (1, 20, 22, 3) and crop.contact.dtype == torch.bool
-        assert len(crop) == 1 and crop.shape == (60, 80) and crop.device == fr.device
-        assert crop.height.dtype == dtype and crop.height.untyped_storage().nbytes() == 20 * 22 * crop.height.element_size()
+        box = crop.box
+        assert (crop.top, crop.left, tuple(box.height.shape)) == (15, 35, (1, 20, 22)) and box.gradients is None
+        assert box.normals.shape == (1, 20, 22, 3) and box.contact.dtype == torch.bool
+        assert len(crop) == 1 and crop.shape == (60, 80) and crop.device == fr.device and crop.mm_per_px == fr.mm_per_px
+        assert box.height.dtype == dtype
+        assert box.height.untyped_storage().nbytes() == 20 * 22 * box.height.element_size()
         full = crop.expand()
         assert full.gradients is None and full.shape == fr.shape and full.height.dtype == dtype
         box = (slice(None), slice(15, 35), slice(35, 57))
@@ -316,22 +318,22 @@ class TestCropToContact:
 
     def test_box_is_clipped_at_the_image_edge(self):
         crop = crop_to_contact(_touch(rows=(0, 4), cols=(75, 80)))
-        assert (crop.top, crop.left, tuple(crop.height.shape)) == (0, 67, (1, 12, 13))
+        assert (crop.top, crop.left, tuple(crop.box.height.shape)) == (0, 67, (1, 12, 13))
         assert torch.equal(crop.expand().contact, _touch(rows=(0, 4), cols=(75, 80)).contact)
 
     def test_no_contact_keeps_an_empty_box(self):
         fr = replace(_touch(), contact=torch.zeros(1, 60, 80, dtype=torch.bool))
         crop = crop_to_contact(fr)
-        assert crop.height.numel() == 0
+        assert crop.box.height.numel() == 0
         full = crop.expand()
         assert not full.contact.any() and (full.height == 0).all() and (full.normals[..., 2] == 1).all()
 
     def test_owns_its_maps(self):
         batch = Frame.cat([_touch(seed=i) for i in range(3)])
         crop = crop_to_contact(batch[1])
-        assert crop.height.untyped_storage().data_ptr() != batch.height.untyped_storage().data_ptr()
+        assert crop.box.height.untyped_storage().data_ptr() != batch.height.untyped_storage().data_ptr()
         batch.height.zero_()
-        assert crop.height.abs().sum() > 0
+        assert crop.box.height.abs().sum() > 0
 
     def test_full_batch_of_frames_and_crops(self, device):
         """Crops pasted into one batch equal their expansions; full frames are copied."""

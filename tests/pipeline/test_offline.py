@@ -66,7 +66,7 @@ def test_tracking_episode_accuracy(tracking_episode, tmp_path, method):
     assert max(mae["rx_deg"], mae["ry_deg"], mae["rz_deg"]) < 0.5, mae
     # keyframes are kept around their contact once the back end has them (the mesh below is fused from those)
     assert res.keyframes and all(isinstance(k.maps, CroppedFrame) for k in res.keyframes)
-    assert sum(k.maps.height.numel() for k in res.keyframes) < len(res.keyframes) * 240 * 320
+    assert sum(k.maps.box.height.numel() for k in res.keyframes) < len(res.keyframes) * 240 * 320
     stats = json.loads((tmp_path / "stats.json").read_text())
     assert STATS_KEYS <= set(stats) and stats["completed"]
     for name in ("poses.npy", "trajectory_tum.txt", "keyframes.json", "config.yaml"):

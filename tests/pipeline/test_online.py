@@ -297,7 +297,7 @@ def test_pack_round_trip_one_shared_buffer(dtype):
     back = unpack_keyframe(packed)
     assert back.frame.gradients is None and back.frame.shape == (6, 8) and len(back.frame) == 1
     for name in ("height", "normals", "curvature"):
-        stored, got, want = getattr(back.maps, name), getattr(back.frame, name), getattr(kf.frame, name)
+        stored, got, want = getattr(back.maps.box, name), getattr(back.frame, name), getattr(kf.frame, name)
         assert stored.data_ptr() >= packed.buffer.data_ptr()  # the record is a view of the buffer, no copy
         assert got.shape == want.shape
         torch.testing.assert_close(got, want.float())

@@ -179,7 +179,8 @@ def _beyond_margin(frames: Frame, margin: int, seed: int) -> Frame:
     far = torch.ones_like(frames.contact)
     for i in range(len(frames)):
         crop = crop_to_contact(frames[i], margin)
-        far[i, crop.top:crop.top + crop.height.shape[1], crop.left:crop.left + crop.height.shape[2]] = False
+        h, w = crop.box.shape
+        far[i, crop.top:crop.top + h, crop.left:crop.left + w] = False
     noise = {name: torch.randn(getattr(frames, name).shape, generator=g, dtype=getattr(frames, name).dtype)
              for name in ("height", "normals", "curvature")}
     return replace(frames, height=torch.where(far, noise["height"], frames.height),
