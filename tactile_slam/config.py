@@ -382,7 +382,8 @@ class Config:
     # ------------------------------------------------------------------ I/O
     def to_dict(self) -> dict[str, Any]:
         """Plain YAML-ready values (tuples become lists)."""
-        return dataclasses.asdict(self, dict_factory=lambda kv: {k: list(v) if isinstance(v, tuple) else v for k, v in kv})
+        return dataclasses.asdict(
+            self, dict_factory=lambda kv: {k: list(v) if isinstance(v, tuple) else v for k, v in kv})
 
     def save(self, path: str | Path) -> None:
         Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))

@@ -36,7 +36,8 @@ def test_presets():
     assert mini.min_contact_px == pytest.approx(500)
     assert mini.height_threshold_px == pytest.approx(3.1546, abs=1e-3)
     d = digit()
-    assert d.sensor.mm_per_px == 0.0405 and d.sensor.fps == 60 and (d.sensor.raw_width, d.sensor.raw_height) == (640, 480)
+    assert d.sensor.mm_per_px == 0.0405 and d.sensor.fps == 60
+    assert (d.sensor.raw_width, d.sensor.raw_height) == (640, 480)
     # pixel-valued constants follow the sensor scale
     assert d.min_contact_px == pytest.approx(500 * (0.0634 / 0.0405) ** 2)
 

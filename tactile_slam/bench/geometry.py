@@ -24,7 +24,8 @@ DEFAULT_DATA = REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=str(DEFAULT_DATA), help="GelSight Mini data folder (calibration presses)")
-    p.add_argument("--model", default=None, help="calibration model (default: models/gelsight_mini.pt, else the reference model)")
+    p.add_argument("--model", default=None,
+                   help="calibration model (default: models/gelsight_mini.pt, else the reference model)")
     p.add_argument("--frames", type=int, default=200, help="timed frames per setting")
     add_device_argument(p)
 
@@ -48,7 +49,8 @@ def run(args) -> Path:
     builder = FrameBuilder(cfg, decoder)
     sync = args.device.startswith("cuda")
     n = len(images)
-    results: dict = {"device": args.device, "image_size": list(cfg.sensor.shape), "model_hidden": list(decoder.model.hidden)}
+    results: dict = {"device": args.device, "image_size": list(cfg.sensor.shape),
+                     "model_hidden": list(decoder.model.hidden)}
 
     counter = iter(range(10**9))
     single = time_fn(lambda: builder.from_bgr(images[next(counter) % n][None]), args.frames, sync_cuda=sync)
@@ -71,14 +73,16 @@ def run(args) -> Path:
     h = zero_level(integrate_exact(g), dilate(col, cfg.contact.dilate))
 
     def masks():
-        c = colour_mask(colour_distance(img, decoder.background), cfg.contact.color_dist_threshold, cfg.contact.dilate, cfg.contact.erode)
+        c = colour_mask(colour_distance(img, decoder.background), cfg.contact.color_dist_threshold,
+                        cfg.contact.dilate, cfg.contact.erode)
         zero_level(h, dilate(c, cfg.contact.dilate))
         threshold, fraction, floor = cfg.depth_test
         return contact_mask(h, c, threshold, cfg.contact.height_percentile, cfg.final_erode_px, fraction, floor)
 
     stages["masks_zero_level"] = time_fn(masks, args.frames // 2, sync_cuda=sync)
     m = masks()[1]
-    stages["curvature_normals"] = time_fn(lambda: (curvature(g, m), normals_from_gradients(g)), args.frames // 2, sync_cuda=sync)
+    stages["curvature_normals"] = time_fn(lambda: (curvature(g, m), normals_from_gradients(g)), args.frames // 2,
+                                          sync_cuda=sync)
     results["stages"] = {k: timing_stats(v) for k, v in stages.items()}
     results["mlp_pixels_fraction"] = float(changed.float().mean())
     out = write_json(args.out, "geometry", results)

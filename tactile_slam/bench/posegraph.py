@@ -119,7 +119,8 @@ def run(args) -> Path:
                          "targets": {"full_solve_s": 2.0, "incremental_ms_per_keyframe": 20.0}},
                "full_solve": _full_solve(scan, args.repeats)}
     print(f"full solve: median {results['full_solve']['timing']['median_ms']:.0f} ms wall, "
-          f"{results['full_solve']['cpu_timing']['median_ms']:.0f} ms CPU, {results['full_solve']['iterations']} iterations")
+          f"{results['full_solve']['cpu_timing']['median_ms']:.0f} ms CPU, "
+          f"{results['full_solve']['iterations']} iterations")
     if not args.skip_incremental:
         results["incremental"] = _incremental(scan)
         inc = results["incremental"]

@@ -303,7 +303,8 @@ def summarise(episodes: list[dict], errors: dict) -> dict:
                                 "precision": cor / rep if rep else float("nan"),
                                 "gt_loops": gt, "found": found, "recall": found / gt if gt else float("nan"),
                                 "episodes_with_false_loops": sum(x["false"] > 0 for x in le)}
-                row["timing_ms_per_keyframe_median"] = median_per_key([e.get("timing_ms_per_keyframe", {}) for e in eps])
+                row["timing_ms_per_keyframe_median"] = median_per_key(
+                    [e.get("timing_ms_per_keyframe", {}) for e in eps])
             out[table][m] = row
     return out
 

@@ -63,7 +63,8 @@ def geometry_demo(out: Path) -> dict:
         model, _ = load_model(model_path)
         bg = torch.from_numpy(cv2.imread(str(calib / "background.png"))).float()
         builder = FrameBuilder(cfg, GradientDecoder(model, bg, cfg.contact.mlp_skip_color_dist))
-        presses = sorted(calib.glob("*mm/*/gelsight.png"))[:: max(1, math.ceil(len(list(calib.glob("*mm/*/gelsight.png"))) / 4))]
+        found = sorted(calib.glob("*mm/*/gelsight.png"))
+        presses = found[:: max(1, math.ceil(len(found) / 4))]
         for p in presses:
             img = cv2.imread(str(p))
             f = builder.from_bgr(torch.from_numpy(img)[None])

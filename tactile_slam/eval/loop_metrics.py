@@ -19,7 +19,8 @@ import numpy as np
 from tactile_slam.eval.tracking_metrics import geodesic_deg
 
 
-def relative_pose_errors(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def relative_pose_errors(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: np.ndarray
+                         ) -> tuple[np.ndarray, np.ndarray]:
     """Errors of estimated relative poses ``(K, 4, 4)`` for ``pairs`` ``(K, 2)`` against
     ground truth ``(T, 4, 4)`` ``object_T_sensor``. Returns ``(trans_mm (K,), rot_deg (K,))``."""
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)

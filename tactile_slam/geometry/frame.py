@@ -290,7 +290,8 @@ class FrameBuilder:
         gradients = gradients.to(self.device, torch.float32)
         if contact is not None:
             contact = contact.to(self.device).bool()
-        changed = contact if contact is not None else torch.zeros(gradients.shape[:3], dtype=torch.bool, device=gradients.device)
+        changed = contact if contact is not None else torch.zeros(gradients.shape[:3], dtype=torch.bool,
+                                                                  device=gradients.device)
         return self._finish(gradients, None, dilate(changed, self.config.contact.dilate), contact, index, timestamp)
 
     def _finish(self, gradients, colour, changed, given_contact, index, timestamp) -> Frame:

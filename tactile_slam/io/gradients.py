@@ -70,7 +70,8 @@ class NpzFrames:
             version = np.lib.format.read_magic(self._stream)
             if version not in ((1, 0), (2, 0)):
                 raise InputError(f"{self.path}: array {self.key!r} has .npy format {version}, expected 1.0 or 2.0")
-            read_header = np.lib.format.read_array_header_1_0 if version == (1, 0) else np.lib.format.read_array_header_2_0
+            fmt = np.lib.format
+            read_header = fmt.read_array_header_1_0 if version == (1, 0) else fmt.read_array_header_2_0
             shape, fortran, dtype = read_header(self._stream)
         except (ValueError, OSError, zipfile.BadZipFile, EOFError) as exc:
             raise InputError(f"cannot read {self.path}: {exc}") from exc

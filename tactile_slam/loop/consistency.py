@@ -254,8 +254,9 @@ class LoopGate:
             may be one keyframe, which is all the coverage set keeps of a small region);
             ``"both"``, distinct keyframes on both sides.
         cycles: also accept three loops between three groups (A-B, B-C, C-A), found by at
-            least ``min_pairs`` (and two) distinct query keyframes, whose implied transforms compose to the identity within
-            the drift tolerance of the paths between their ends, when no other waiting loop
+            least ``min_pairs`` (and two) distinct query keyframes, whose implied transforms
+            compose to the identity within the drift tolerance of the paths between their
+            ends, when no other waiting loop
             between those groups contradicts them by more than ``doubt_factor`` times it:
             short sessions after contact loss seldom give two loops to the same group, but a
             later session often touches two earlier ones, and a false loop rarely closes a

@@ -381,7 +381,8 @@ class CoverageSet:
             cap = self._wbuf.shape[0]
             grow = max(cap, 8)
             self._wbuf, self._hbuf, self._pbuf, self._rbuf = (
-                torch.cat([b, b.new_zeros(grow, *b.shape[1:])]) for b in (self._wbuf, self._hbuf, self._pbuf, self._rbuf))
+                torch.cat([b, b.new_zeros(grow, *b.shape[1:])])
+                for b in (self._wbuf, self._hbuf, self._pbuf, self._rbuf))
             self._free = list(range(cap + grow - 1, cap - 1, -1))
         return self._free.pop()
 

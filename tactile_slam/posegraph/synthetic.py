@@ -105,9 +105,9 @@ def synthetic_scan(n_keyframes: int, n_loops: int, n_sessions: int = 1, seed: in
     As in GelSLAM, loops run from a keyframe ``t`` to an earlier *coverage* keyframe ``r``
     (``r < t - 1``) within ``loop_radius_m``; coverage keyframes are picked greedily in
     scan order, each at least ``coverage_spacing_m`` from the earlier ones (0 makes every
-    keyframe a coverage keyframe). Noise sigmas are (rotation rad, translation m) for the simulated measurements; the factors
-    carry the graph's default sigma from ``config``. ``walk`` goes to :func:`sphere_walk`.
-    Raises ``ValueError`` if the walk has fewer candidate pairs than ``n_loops``.
+    keyframe a coverage keyframe). Noise sigmas are (rotation rad, translation m) for the
+    simulated measurements; the factors carry the graph's default sigma from ``config``.
+    ``walk`` goes to :func:`sphere_walk`. Raises ``ValueError`` if the walk has fewer candidate pairs than ``n_loops``.
     """
     if n_keyframes < 1 or n_sessions < 1 or n_sessions > n_keyframes or n_loops < 0:
         raise ValueError("need n_keyframes >= n_sessions >= 1 and n_loops >= 0")

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from tactile_slam.config import Config
-from tactile_slam.loop.coverage import CoverageSet, pixel_coords, point_map, transform_points
+from tactile_slam.loop.coverage import CoverageSet, point_map
 from tactile_slam.recon.mesh import TriMesh, grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
 

@@ -375,7 +375,8 @@ class _Pairs:
         """The pairs ``ids`` (references of batch 1 stay shared)."""
         b = self.n_map.shape[0]
         idx = torch.from_numpy(ids).to(self.n_map.device)
-        return _Pairs(*(x if x.shape[0] == 1 and b > 1 else x[idx] for x in (getattr(self, f.name) for f in fields(self))))
+        parts = (getattr(self, f.name) for f in fields(self))
+        return _Pairs(*(x if x.shape[0] == 1 and b > 1 else x[idx] for x in parts))
 
 
 def _bmv(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -586,7 +587,8 @@ def _register_levels(prep: PreparedReference, tar: Frame, init: np.ndarray, conf
             st.active, st.converged = ~st.lost, np.zeros_like(st.lost)
         else:
             st = _gauss_newton(st, pairs, scale, True, config, config.max_iters, config.min_iters, 1.0)
-    maps = (tar.height.to(device=dev, dtype=dt).unsqueeze(1), tar.curvature.to(device=dev, dtype=dt).unsqueeze(1), c_map)
+    maps = (tar.height.to(device=dev, dtype=dt).unsqueeze(1), tar.curvature.to(device=dev, dtype=dt).unsqueeze(1),
+            c_map)
     return _finish(prep, maps, st, config, scale)
 
 
@@ -609,7 +611,7 @@ def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig,
     ``maps``: the targets' ``(B, 1, H, W)`` height, curvature and contact; the poses are
     ``st.rot``, ``st.txy`` (tz is set here). The samples are taken on the maps' device in
     one pass; the reductions over them run on the host in float64."""
-    b, k = len(st.rot), prep.points_t.shape[2]
+    b = len(st.rot)
     h_map, l_map, c_map = maps
     pack = _motion(st.rot, st.txy, scale, _host_dtype(prep.dtype))[:, :3]  # rows: grid x, grid y, then
     pack[:, 2, :3] = st.rot[:, 2]  # (R P)_z

@@ -166,7 +166,8 @@ class Tracker:
                 raise ValueError(f"tracking.{name} must be a finite number >= 0, got {v!r}")
         if isinstance(config.keyframe_near_rounds, bool) or not isinstance(config.keyframe_near_rounds, int) \
                 or config.keyframe_near_rounds < 1:
-            raise ValueError(f"tracking.keyframe_near_rounds must be an integer >= 1, got {config.keyframe_near_rounds!r}")
+            raise ValueError(
+                f"tracking.keyframe_near_rounds must be an integer >= 1, got {config.keyframe_near_rounds!r}")
         check_keep_contact(config.keep_contact_mm2)
         if any(isinstance(f, bool) or not isinstance(f, int) or f < 2 for f in config.fallback_factors):
             raise ValueError(f"tracking.fallback_factors must be integers >= 2, got {config.fallback_factors!r}")
@@ -278,7 +279,8 @@ class Tracker:
 
         if not self.prev_in_contact:
             kf = self._new_session(frame)
-            return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf], is_keyframe=True))
+            return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf],
+                                               is_keyframe=True))
 
         res = self._register(frame, self._init_guess())
         if bool(res.ok):
@@ -292,7 +294,8 @@ class Tracker:
             if weak:
                 return self._lost(index, [])
             kf = self._new_session(frame)
-            return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf], is_keyframe=True))
+            return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf],
+                                               is_keyframe=True))
         # lazy keyframe rule: the previous frame becomes a keyframe, then retry
         prev_kf = self._make_keyframe(self.prev, False, self.kf_T_prev)
         old_kf_T_prev = prev_kf.prev_T_kf

@@ -174,7 +174,8 @@ def test_ring_contact_keeps_unpressed_centre():
 
     r, c = grid()
     rad = torch.sqrt(r**2 + c**2)
-    h = torch.where((rad > 20) & (rad < 45), torch.tensor(-10.0, dtype=torch.float64), torch.tensor(0.0, dtype=torch.float64))[None]
+    h = torch.where((rad > 20) & (rad < 45), torch.tensor(-10.0, dtype=torch.float64),
+                    torch.tensor(0.0, dtype=torch.float64))[None]
     colour = torch.zeros(1, 240, 320, dtype=torch.bool)
     colour[0] = rad < 47  # a filled colour mask
     _, eroded = contact_mask(h, colour, 3.155, 85.0, 5)

@@ -8,7 +8,8 @@ from tactile_slam.geometry.morphology import as_weights, dilate, erode, fill_hol
 @pytest.mark.parametrize("border_is_contact", [True, False])
 def test_backends_agree(size, border_is_contact):
     m = torch.rand(3, 40, 50, generator=torch.Generator().manual_seed(size)) > 0.4
-    torch.testing.assert_close(erode(m, size, border_is_contact, backend="cv2"), erode(m, size, border_is_contact, backend="torch"))
+    torch.testing.assert_close(erode(m, size, border_is_contact, backend="cv2"),
+                               erode(m, size, border_is_contact, backend="torch"))
     torch.testing.assert_close(dilate(m, size, backend="cv2"), dilate(m, size, backend="torch"))
 
 

@@ -65,7 +65,8 @@ def test_main_group_is_the_longest_not_a_first_tap(mini_data, tmp_path):
     frames = [bg] * 10 + [tap] * 2 + [bg] * 3 + [press] * 6 + [bg] * 2
     write_video(tmp_path / "gelsight.avi", np.stack(frames), 25.0)
     cfg = Config()
-    res = OfflinePipeline(open_source(tmp_path, cfg), cfg, tmp_path / "out", RunOptions(mesh=False, progress=False)).run()
+    opts = RunOptions(mesh=False, progress=False)
+    res = OfflinePipeline(open_source(tmp_path, cfg), cfg, tmp_path / "out", opts).run()
     assert res.stats["sessions"] == 2
     has = np.isfinite(res.poses[:, 0, 0])
     assert has.nonzero()[0].tolist() == list(range(15, 21))  # the press, not the tap

@@ -73,7 +73,8 @@ class ScriptedRegistrar:
         if self.slip is not None and self.slip(ref_index, tar_index) is not None:
             t = self.slip(ref_index, tar_index) @ t
         full = lambda v, dt=torch.float64: torch.full((b,), v, dtype=dt)  # noqa: E731
-        return RegistrationResult(t.expand(b, 4, 4).clone(), full(0.9 if ok else 0.1), full(0.9), full(100, torch.int64),
+        return RegistrationResult(t.expand(b, 4, 4).clone(), full(0.9 if ok else 0.1), full(0.9),
+                                  full(100, torch.int64),
                                   full(7, torch.int64), full(True, torch.bool), full(ok, torch.bool), full(0.1))
 
 
