@@ -18,9 +18,9 @@ class Keyframe:
         session: tracking-session id (a contiguous contact period tracked without an
             unrecoverable failure); the session's first keyframe is its head.
         maps: the keyframe's geometry as stored: a :class:`Frame` with ``B = 1``, or a
-            :class:`CroppedFrame` (what the trackers store: the maps around the
-            contact only, a fraction of the memory on a long scan). Read it through
-            :attr:`frame`.
+            :class:`CroppedFrame` (the maps around the contact only, a fraction of the
+            memory on a long scan: what the pipelines keep once the back end has taken
+            the keyframe in, :meth:`compact`). Read it through :attr:`frame`.
         new_session: True for a session head.
         prev_T_kf: ``(4, 4)`` float64, metres: this keyframe's pose in the previous
             keyframe of the same session (the odometry measurement); identity for a
