@@ -35,7 +35,7 @@ import torch
 from tactile_slam.bench.common import rendered_frames, write_json
 from tactile_slam.config import Config, load_config
 from tactile_slam.eval.recon_metrics import recon_report, surface_metrics, touch_poses
-from tactile_slam.geometry.frame import FrameBuilder
+from tactile_slam.geometry.frame import FrameBuilder, crop_to_contact
 from tactile_slam.io import open_source
 from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
 from tactile_slam.recon import ReconError, reconstruct
@@ -108,7 +108,8 @@ def timing_run(n_touches: int, seed: int, config: Config) -> dict:
     kfs, poses = [], []
     for pose, frame in zip(o_T_s, rendered_frames(renderer, FrameBuilder(config), o_T_s)):
         if bool(frame.contact.any()):
-            kfs.append(Keyframe(id=len(kfs), session=0, maps=frame, new_session=not kfs,
+            # stored as the pipeline stores keyframes by the time it meshes: around the contact
+            kfs.append(Keyframe(id=len(kfs), session=0, maps=crop_to_contact(frame), new_session=not kfs,
                                 prev_T_kf=torch.eye(4, dtype=torch.float64)))
             poses.append(pose)
     o_T_s = np.stack(poses)

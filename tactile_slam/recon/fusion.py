@@ -26,6 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from tactile_slam.config import Config
+from tactile_slam.geometry.frame import CroppedFrame
 from tactile_slam.loop.coverage import CoverageSet, point_map
 from tactile_slam.recon.mesh import TriMesh, grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
@@ -88,6 +89,16 @@ def contact_box(contact: torch.Tensor) -> torch.Tensor:
     return torch.stack([cols[0], cols[-1], rows[0], rows[-1]])
 
 
+def keyframe_contact_box(keyframe: Keyframe) -> torch.Tensor:
+    """:func:`contact_box` of a keyframe's contact in full-image pixels, read from its
+    stored maps (a cropped keyframe is not expanded for it)."""
+    maps = keyframe.maps
+    if isinstance(maps, CroppedFrame):
+        return contact_box(maps.box.contact[0]) + torch.tensor([maps.left, maps.left, maps.top, maps.top],
+                                                               device=maps.device)
+    return contact_box(maps.contact[0])
+
+
 def project_into_box(n_T_t: torch.Tensor, points: torch.Tensor, box: torch.Tensor, m_per_px: float,
                      shape: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
     """Project keyframe t's points into keyframe n; keep those with a pixel of n's box
@@ -136,7 +147,7 @@ def fuse(
     gate = config.recon.fusion_gate_mm / 1000.0
     if not gate > 0:
         raise ReconError(f"recon.fusion_gate_mm must be > 0, got {config.recon.fusion_gate_mm}")
-    boxes = {t: contact_box(by_id[t].frame.contact[0].to(coverage.device)) for t in coverage.active}
+    boxes = {t: keyframe_contact_box(by_id[t]).to(coverage.device) for t in coverage.active}
     out = []
     for t in coverage.active:
         frame = by_id[t].frame

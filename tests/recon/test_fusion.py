@@ -10,10 +10,10 @@ from scipy.spatial.transform import Rotation
 
 from tests.recon.recon_oracle import sphere_keyframes
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import FrameBuilder
+from tactile_slam.geometry.frame import FrameBuilder, crop_to_contact
 from tactile_slam.recon import ReconError, fuse, merge_surfaces
 from tactile_slam.loop.coverage import lookup
-from tactile_slam.recon.fusion import contact_box, grid_normals, project_into_box
+from tactile_slam.recon.fusion import contact_box, grid_normals, keyframe_contact_box, project_into_box
 from tactile_slam.recon.mesh import grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -143,6 +143,25 @@ def test_fused_sphere_points_lie_on_sphere():
     nrm = torch.cat([f.normals for f in fused]).numpy()
     inner = (nrm * pts / np.linalg.norm(pts, axis=1, keepdims=True)).sum(1)
     assert np.median(inner) > 0.99  # outward normals
+
+
+def test_cropped_keyframes_fuse_exactly_as_full_ones():
+    """The pipeline keeps keyframes cropped to their contact (``Keyframe.compact``) by the
+    time it meshes: fusion of the crops equals fusion of the full frames, and their
+    contact boxes are read without expanding them."""
+    cfg = Config()
+    kfs, poses = sphere_keyframes(cfg, radius_mm=3.0, depth_mm=0.8, n=12)
+    full = fuse(kfs, poses, cfg)
+    cropped = [Keyframe(k.id, k.session, crop_to_contact(k.frame), k.new_session, k.prev_T_kf) for k in kfs]
+    assert all(k.maps.box.height.numel() < H * W for k in cropped)  # the crops do drop pixels
+    for k, c in zip(kfs, cropped):
+        assert torch.equal(keyframe_contact_box(c), contact_box(k.frame.contact[0]))
+        assert torch.equal(keyframe_contact_box(k), contact_box(k.frame.contact[0]))
+    out = fuse(cropped, poses, cfg)
+    assert [f.id for f in out] == [f.id for f in full]
+    for a, b in zip(full, out):
+        for name in ("mask", "points", "normals", "weights", "owned"):
+            assert torch.equal(getattr(a, name), getattr(b, name)), name
 
 
 def _read(maps: torch.Tensor, cr: torch.Tensor, bilinear: bool) -> torch.Tensor:
