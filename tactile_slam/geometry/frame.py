@@ -201,8 +201,8 @@ def crop_to_contact(frame: Frame, margin: int = 8) -> CroppedFrame:
         r0, r1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)
         c0, c1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin + 1, w)
 
-    box = replace(frame, gradients=None, height=frame.height[:, r0:r1, c0:c1], contact=frame.contact[:, r0:r1, c0:c1],
-                  normals=frame.normals[:, r0:r1, c0:c1], curvature=frame.curvature[:, r0:r1, c0:c1]).clone()
+    box = own_maps(replace(frame, height=frame.height[:, r0:r1, c0:c1], contact=frame.contact[:, r0:r1, c0:c1],
+                           normals=frame.normals[:, r0:r1, c0:c1], curvature=frame.curvature[:, r0:r1, c0:c1]))
     return CroppedFrame(box=box, top=r0, left=c0, full_shape=(h, w))
 
 

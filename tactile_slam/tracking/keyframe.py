@@ -41,11 +41,11 @@ class Keyframe:
         access: bind it once where several maps are read)."""
         return self.maps.expand() if isinstance(self.maps, CroppedFrame) else self.maps
 
-    def compact(self, margin: int = 8) -> None:
+    def compact(self) -> None:
         """Keep only the maps around the contact from now on (:func:`crop_to_contact`):
         what a pipeline does once the back end has taken the keyframe in."""
         if isinstance(self.maps, Frame):
-            self.maps = crop_to_contact(self.maps, margin)
+            self.maps = crop_to_contact(self.maps)
 
     @property
     def video_index(self) -> int:
