@@ -13,7 +13,7 @@ are metres.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 import open3d as o3d
@@ -25,61 +25,101 @@ from tactile_slam.recon.fusion import FusedKeyframe, ReconError
 from tactile_slam.recon.mesh import TriMesh
 
 
-def oriented_points(fused: Sequence[FusedKeyframe], min_weight: float) -> tuple[torch.Tensor, torch.Tensor]:
-    """Fused points and outward normals for Poisson, in the start frame (metres).
+def oriented_points(fused: Sequence[FusedKeyframe], min_weight: float
+                    ) -> tuple[list[torch.Tensor], list[torch.Tensor]]:
+    """Fused points and outward normals for Poisson, in the start frame (metres), one
+    part per keyframe (never concatenated: a large scan has tens of millions).
 
     Keeps points whose own boundary weight is at least ``min_weight`` (away from the
     keyframe's contact edge) and whose normal faces the keyframe's outward side
     (positive dot product with its -z axis).
 
     Returns:
-        ``(N, 3)`` float32 points, ``(N, 3)`` float32 unit normals.
+        the ``(N_k, 3)`` float32 points and the ``(N_k, 3)`` float32 unit normals of
+        each keyframe that keeps any (two lists).
     """
     pts, nrm = [], []
     for fk in fused:
         keep = (fk.weights >= min_weight) & (fk.normals @ fk.outward > 0)
-        p, n = fk.points[keep], fk.normals[keep]
-        pts.append(p)
-        nrm.append(n)
-    if not pts or sum(p.shape[0] for p in pts) == 0:
+        if bool(keep.any()):
+            pts.append(fk.points[keep])
+            nrm.append(fk.normals[keep])
+    if not pts:
         raise ReconError("no fused points away from contact boundaries: nothing to mesh")
-    return torch.cat(pts), torch.cat(nrm)
+    return pts, nrm
 
 
-def voxel_sums(points: torch.Tensor, values: torch.Tensor, voxel: float) -> torch.Tensor:
-    """Sum ``(N, C)`` values per cubic voxel (side ``voxel``, grid anchored at the
-    origin) of their ``(N, 3)`` points: ``(M, C)`` sums, ``M <= N``."""
+_KEY_BITS = 21  # per axis: voxel indices in [-2^20, 2^20)
+
+
+def voxel_keys(points: torch.Tensor, voxel: float) -> torch.Tensor:
+    """One int64 key per cubic voxel (side ``voxel``, grid anchored at the origin) of
+    ``(N, 3)`` points, ordered as the voxel indices ``(i, j, k)`` lexicographically.
+    ``(N,)``; raises :class:`ReconError` beyond 2^20 voxels from the origin."""
     key = torch.floor(points / voxel).long()
-    key = key - key.min(dim=0).values
-    dims = key.max(dim=0).values + 1
-    flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
-    uniq, inv = torch.unique(flat, return_inverse=True)
-    return torch.zeros(uniq.shape[0], values.shape[1], dtype=values.dtype, device=values.device).index_add_(
-        0, inv, values)
+    half = 1 << (_KEY_BITS - 1)
+    if key.numel() and int(key.abs().max()) >= half:
+        raise ReconError(f"points lie more than {half} voxels of {voxel:g} from the origin")
+    key = key + half
+    return (key[:, 0] << (2 * _KEY_BITS)) | (key[:, 1] << _KEY_BITS) | key[:, 2]
+
+
+def voxel_sums(parts: Iterable[tuple[torch.Tensor, torch.Tensor]], voxel: float, chunk: int = 1 << 16
+               ) -> torch.Tensor:
+    """Sum values per cubic voxel (side ``voxel``, grid anchored at the origin) over
+    parts of ``(N, 3)`` points with their ``(N, C)`` values: ``(M, C)`` sums, in the
+    order of :func:`voxel_keys`. Each part is summed ``chunk`` points at a time, then
+    the partial sums per voxel: fused points come keyframe by keyframe, so a chunk
+    covers few voxels and no sort or copy runs over all the points."""
+    keys, sums = [], []
+    for points, values in parts:
+        for a in range(0, points.shape[0], chunk):
+            uniq, inv = torch.unique(voxel_keys(points[a:a + chunk], voxel), return_inverse=True)
+            keys.append(uniq)
+            sums.append(values.new_zeros(uniq.shape[0], values.shape[1]).index_add_(0, inv, values[a:a + chunk]))
+    if len(sums) == 1:
+        return sums[0]
+    uniq, inv = torch.unique(torch.cat(keys), return_inverse=True)
+    return sums[0].new_zeros(uniq.shape[0], sums[0].shape[1]).index_add_(0, inv, torch.cat(sums))
 
 
 def voxel_average(
-    points: torch.Tensor, normals: torch.Tensor, voxel: float, max_points: int | None = None
+    points: torch.Tensor | Sequence[torch.Tensor], normals: torch.Tensor | Sequence[torch.Tensor], voxel: float,
+    max_points: int | None = None, scale: float = 1.0,
 ) -> tuple[torch.Tensor, torch.Tensor, float]:
-    """Average points and normals per cubic voxel of side ``voxel`` (same units),
-    coarsened until at most ``max_points`` voxels remain.
+    """Average points and normals per cubic voxel of side ``voxel``, coarsened until
+    at most ``max_points`` voxels remain.
 
     A coarser voxel is an integer multiple of ``voxel`` (surface samples thin out as
     ``1 / voxel^2``: each retry multiplies it by about ``1.05 sqrt(M / max_points)``),
     so its voxels are unions of the finer ones and re-binning the finer voxels'
     centroids with their sums gives exactly the average of the original points.
 
+    Args:
+        points: ``(N, 3)``, or a list of parts ``(N_k, 3)`` (e.g. one per keyframe).
+        normals: matching ``(N, 3)`` or parts.
+        voxel: in the units of ``points * scale``.
+        max_points: voxel budget (``None``: none).
+        scale: unit factor applied to each part's points before binning.
+
     Returns:
-        ``(M, 3)`` points, ``(M, 3)`` unit normals, the voxel size used.
+        ``(M, 3)`` points (in the scaled units), ``(M, 3)`` unit normals, the voxel size used.
     """
     if max_points is not None and max_points < 1:
         raise ReconError(f"recon.poisson_max_points must be >= 1 (or None for no budget), got {max_points}")
-    ones = torch.ones_like(points[:, :1])
-    sums = voxel_sums(points, torch.cat([points, normals, ones], dim=1), voxel)
+    if isinstance(points, torch.Tensor):
+        points, normals = [points], [normals]
+
+    def rows():  # (points, [points | normals | 1]) per part, scaled one part at a time
+        for p, n in zip(points, normals):
+            p = p * scale if scale != 1.0 else p
+            yield p, torch.cat([p, n, torch.ones_like(p[:, :1])], dim=1)
+
+    sums = voxel_sums(rows(), voxel)
     factor = 1
     while max_points is not None and sums.shape[0] > max_points:
         factor = math.ceil(factor * 1.05 * math.sqrt(sums.shape[0] / max_points))
-        sums = voxel_sums(sums[:, :3] / sums[:, 6:], sums, voxel * factor)
+        sums = voxel_sums([(sums[:, :3] / sums[:, 6:], sums)], voxel * factor)
     return sums[:, :3] / sums[:, 6:], torch.nn.functional.normalize(sums[:, 3:6], dim=1), voxel * factor
 
 
@@ -91,13 +131,15 @@ def poisson_depth(extent_mm: float, cell_mm: float, min_depth: int, max_depth: i
 
 
 def poisson_mesh(
-    points: torch.Tensor, normals: torch.Tensor, config: ReconConfig, watertight: bool | None = None
+    points: torch.Tensor | Sequence[torch.Tensor], normals: torch.Tensor | Sequence[torch.Tensor],
+    config: ReconConfig, watertight: bool | None = None,
 ) -> tuple[TriMesh, dict]:
     """Screened Poisson surface from oriented points.
 
     Args:
-        points: ``(N, 3)`` metres (already voxel-averaged or not).
-        normals: ``(N, 3)`` outward unit normals.
+        points: ``(N, 3)`` metres (already voxel-averaged or not), or a list of
+            parts (:func:`oriented_points`).
+        normals: ``(N, 3)`` outward unit normals, or matching parts.
         config: ``voxel_mm``, ``poisson_cell_mm``, ``poisson_max_points`` (beyond it
             the voxel and the cell grow together), depth bounds, trimming settings.
         watertight: override ``config.watertight``.
@@ -106,11 +148,11 @@ def poisson_mesh(
         the mesh in metres (same frame as the points) and statistics (depth, counts,
         whether it is closed: edge- and vertex-manifold without boundary edges).
     """
-    if points.shape[0] < 10:
-        raise ReconError(f"Poisson meshing needs at least 10 oriented points, got {points.shape[0]}")
+    count = points.shape[0] if isinstance(points, torch.Tensor) else sum(p.shape[0] for p in points)
+    if count < 10:
+        raise ReconError(f"Poisson meshing needs at least 10 oriented points, got {count}")
     watertight = config.watertight if watertight is None else watertight
-    p_mm, n, voxel = voxel_average(points * 1000.0, normals, config.voxel_mm,
-                                   config.poisson_max_points)
+    p_mm, n, voxel = voxel_average(points, normals, config.voxel_mm, config.poisson_max_points, scale=1000.0)
     cell = config.poisson_cell_mm * voxel / config.voxel_mm  # the cell follows a coarsened voxel
     extent = float((p_mm.max(dim=0).values - p_mm.min(dim=0).values).max())
     depth = poisson_depth(extent, cell, config.poisson_min_depth, config.poisson_max_depth)
