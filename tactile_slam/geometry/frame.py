@@ -170,6 +170,49 @@ def full_batch(parts: list[Frame | CroppedFrame]) -> Frame:
     return out
 
 
+def contact_bounds(part: Frame | CroppedFrame) -> tuple[int, int, int, int] | None:
+    """Inclusive ``(row_min, row_max, col_min, col_max)`` of one frame's contact in
+    full-image pixels (a cropped frame is not expanded), or ``None`` without contact."""
+    if len(part) != 1:
+        raise InputError(f"contact bounds are read from one frame (B = 1), got B = {len(part)}")
+    maps, top, left = (part.box, part.top, part.left) if isinstance(part, CroppedFrame) else (part, 0, 0)
+    rows = maps.contact[0].any(dim=1).nonzero()[:, 0]
+    if rows.numel() == 0:
+        return None
+    cols = maps.contact[0].any(dim=0).nonzero()[:, 0]
+    return int(rows[0]) + top, int(rows[-1]) + top, int(cols[0]) + left, int(cols[-1]) + left
+
+
+def height_and_contact_in(part: Frame | CroppedFrame, rows: slice, cols: slice) -> tuple[torch.Tensor, torch.Tensor]:
+    """Height (px) and contact of one frame over a window of the full image, reading
+    flat gel (height 0, no contact) outside a cropped frame's box, as its
+    :meth:`~CroppedFrame.expand` would, without expanding it.
+
+    Args:
+        part: a :class:`Frame` with ``B = 1`` or a :class:`CroppedFrame`.
+        rows, cols: the window, slices of the full image with ``0 <= start < stop``
+            within it.
+
+    Returns:
+        ``(h, w)`` height and ``(h, w)`` bool contact (views of a full frame's maps).
+    """
+    if len(part) != 1:
+        raise InputError(f"a window is read from one frame (B = 1), got B = {len(part)}")
+    if isinstance(part, Frame):
+        return part.height[0, rows, cols], part.contact[0, rows, cols]
+    box = part.box
+    height = torch.zeros((rows.stop - rows.start, cols.stop - cols.start), dtype=box.height.dtype, device=box.device)
+    contact = torch.zeros(height.shape, dtype=torch.bool, device=box.device)
+    bh, bw = box.shape
+    r0, r1 = max(rows.start, part.top), min(rows.stop, part.top + bh)
+    c0, c1 = max(cols.start, part.left), min(cols.stop, part.left + bw)
+    if r0 < r1 and c0 < c1:
+        dst = (slice(r0 - rows.start, r1 - rows.start), slice(c0 - cols.start, c1 - cols.start))
+        src = (0, slice(r0 - part.top, r1 - part.top), slice(c0 - part.left, c1 - part.left))
+        height[dst], contact[dst] = box.height[src], box.contact[src]
+    return height, contact
+
+
 def own_maps(frame: Frame) -> Frame:
     """A copy of ``frame``'s maps without its gradients, for a record that outlives its
     batch (``frames[i]`` is a view that keeps the whole batch alive); nothing after a

@@ -30,6 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from tactile_slam.config import Config
+from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in
 from tactile_slam.tracking.keyframe import Keyframe
 
 # Points per projection chunk: bounds the memory of batched projections.
@@ -109,20 +110,25 @@ def boundary_weights(contact: torch.Tensor, length: float | None = None) -> torc
     return 0.5 * (torch.tanh(d / l - 3.0) + 1.0) * contact
 
 
-def point_map(height: torch.Tensor, m_per_px: float) -> torch.Tensor:
+def point_map(height: torch.Tensor, m_per_px: float, origin: tuple[int, int] = (0, 0),
+              full_shape: tuple[int, int] | None = None) -> torch.Tensor:
     """Metric point of every pixel, in its sensor frame (method.md 1.2).
 
     Args:
-        height: ``(B, H, W)`` px (gel at 0, pressed negative).
+        height: ``(B, h, w)`` px (gel at 0, pressed negative): the full image, or a
+            window of it whose first pixel is ``origin`` (row, column) of an image of
+            ``full_shape`` (default: the height's own size).
         m_per_px: pixel size ``s`` in metres.
 
     Returns:
-        ``(B, H, W, 3)`` float32 metres: ``((c - (W-1)/2) s, (r - (H-1)/2) s, h s)``.
+        ``(B, h, w, 3)`` float32 metres: ``((c - (W-1)/2) s, (r - (H-1)/2) s, h s)`` with
+        ``(r, c)`` the full image's pixel.
     """
     b, h, w = height.shape
+    full_h, full_w = full_shape or (h, w)
     dev = height.device
-    ys = (torch.arange(h, device=dev, dtype=torch.float32) - (h - 1) / 2.0) * m_per_px
-    xs = (torch.arange(w, device=dev, dtype=torch.float32) - (w - 1) / 2.0) * m_per_px
+    ys = (torch.arange(h, device=dev, dtype=torch.float32) + origin[0] - (full_h - 1) / 2.0) * m_per_px
+    xs = (torch.arange(w, device=dev, dtype=torch.float32) + origin[1] - (full_w - 1) / 2.0) * m_per_px
     return torch.stack(
         [xs.view(1, 1, w).expand(b, h, w), ys.view(1, h, 1).expand(b, h, w), height.float() * m_per_px], dim=-1
     )
@@ -150,32 +156,45 @@ def lookup(buffer: torch.Tensor, slots: torch.Tensor, cr: torch.Tensor, shape: t
         slots: ``(P,)`` int64 row of the map to read for each point set.
         cr: ``(P, N, 2)`` float ``(col, row)`` positions.
         shape: ``(H, W)``.
-        bilinear: bilinear interpolation (out-of-image neighbours read 0) instead of
-            the nearest pixel (ties round half to even).
+        bilinear: bilinear interpolation (out-of-image neighbours read 0,
+            :func:`lookup_bilinear`) instead of the nearest pixel (ties round half to even).
 
     Returns:
         ``(P, N)`` values.
     """
+    if bilinear:
+        return lookup_bilinear([buffer], slots, cr, shape)[0]
     h, w = shape
-    flat = buffer.reshape(-1)
     rows = slots.view(-1, 1) * (h * w)
-    if not bilinear:
-        col = torch.round(cr[..., 0]).long()
-        row = torch.round(cr[..., 1]).long()
-        inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        return flat.take(rows + row.clamp(0, h - 1) * w + col.clamp(0, w - 1)) * inside
+    col = torch.round(cr[..., 0]).long()
+    row = torch.round(cr[..., 1]).long()
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    return buffer.reshape(-1).take(rows + row.clamp(0, h - 1) * w + col.clamp(0, w - 1)) * inside
+
+
+def lookup_bilinear(buffers: Sequence[torch.Tensor], slots: torch.Tensor, cr: torch.Tensor,
+                    shape: tuple[int, int]) -> list[torch.Tensor]:
+    """Bilinear reads of several buffers laid out alike (:func:`lookup`) at the same
+    positions, out-of-image neighbours reading 0; the corners and their weights are
+    computed once for all buffers. ``(S, H * W)`` each, ``(P,)``, ``(P, N, 2)`` ->
+    one ``(P, N)`` per buffer."""
+    h, w = shape
+    rows = slots.view(-1, 1) * (h * w)
     c0 = torch.floor(cr[..., 0])
     r0 = torch.floor(cr[..., 1])
     fc = cr[..., 0] - c0
     fr = cr[..., 1] - r0
     c0 = c0.long()
     r0 = r0.long()
-    out = torch.zeros_like(fc, dtype=buffer.dtype)
+    flats = [b.reshape(-1) for b in buffers]
+    out = [torch.zeros_like(fc, dtype=b.dtype) for b in buffers]
     for dr, dc, wt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
         r = r0 + dr
         c = c0 + dc
         inside = (c >= 0) & (c < w) & (r >= 0) & (r < h)
-        out = out + flat.take(rows + r.clamp(0, h - 1) * w + c.clamp(0, w - 1)) * (wt * inside)
+        idx = rows + r.clamp(0, h - 1) * w + c.clamp(0, w - 1)
+        wt = wt * inside
+        out = [o + f.take(idx) * wt for o, f in zip(out, flats)]
     return out
 
 
@@ -258,12 +277,15 @@ class CoverageSet:
         """``(H, W)`` boundary-weight map of an active keyframe (a view)."""
         return self._wbuf[self._active_node(kf_id).slot].view(self.shape)
 
-    def lookup(self, kf_ids: Sequence[int], cr: torch.Tensor, heights: bool = False,
-               bilinear: bool = False) -> torch.Tensor:
-        """Weights (or heights, px) of active keyframes ``kf_ids`` at ``(P, N, 2)``
-        pixel positions ``(col, row)``, one row of points per id: ``(P, N)``."""
-        slots = torch.tensor([self._active_node(i).slot for i in kf_ids], device=self._wbuf.device)
-        return lookup(self._hbuf if heights else self._wbuf, slots, cr, self.shape, bilinear)
+    def surface_at(self, kf_id: int, cr: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """What fusion reads of active keyframe ``kf_id`` at ``(N, 2)`` pixel positions
+        ``(col, row)``: its height (px) and weight, both bilinear, and its weight at the
+        nearest pixel, each ``(N,)`` (as three :func:`lookup` calls, in one pass). The
+        height is kept within 1 px of the contact's bounding box and reads 0 beyond,
+        where the bilinear weight is 0."""
+        slots = torch.tensor([self._active_node(kf_id).slot], device=self._wbuf.device)
+        h, w = lookup_bilinear([self._hbuf, self._wbuf], slots, cr[None], self.shape)
+        return h[0], w[0], lookup(self._wbuf, slots, cr[None], self.shape)[0]
 
     def _active_node(self, kf_id: int) -> _Node:
         node = self._node(kf_id)
@@ -340,26 +362,36 @@ class CoverageSet:
 
     # ------------------------------------------------------------------ internals
     def _make_node(self, keyframe: Keyframe, start_T_kf: torch.Tensor, group: int) -> _Node:
-        frame = keyframe.frame
-        if len(frame) != 1:
-            raise CoverageError(f"keyframe {keyframe.id}: frame must hold one image, got {len(frame)}")
-        if tuple(frame.shape) != tuple(self.shape):
-            raise CoverageError(f"keyframe {keyframe.id}: image size {tuple(frame.shape)} != sensor {self.shape}")
+        maps = keyframe.maps
+        if len(maps) != 1:
+            raise CoverageError(f"keyframe {keyframe.id}: frame must hold one image, got {len(maps)}")
+        if tuple(maps.shape) != tuple(self.shape):
+            raise CoverageError(f"keyframe {keyframe.id}: image size {tuple(maps.shape)} != sensor {self.shape}")
         if self.device is None:
-            self.device = frame.device
+            self.device = maps.device
         dev = self.device
-        contact = frame.contact[0].to(dev)
-        if not bool(contact.any()):
+        # the contact's bounding box and 1 px (what a bilinear read of a point with a
+        # contact corner reaches): the weights are 0 outside it and no read that can
+        # count needs a height there
+        box = contact_bounds(maps)
+        if box is None:
             raise CoverageError(f"keyframe {keyframe.id} has no contact pixels")
-        height = frame.height[0].to(dev, torch.float32)
+        h, w = self.shape
+        rows, cols = slice(max(box[0] - 1, 0), min(box[1] + 2, h)), slice(max(box[2] - 1, 0), min(box[3] + 2, w))
+        height, contact = (x.to(dev) for x in height_and_contact_in(maps, rows, cols))
+        height = height.to(torch.float32)
         if not torch.isfinite(height[contact]).all():
             raise CoverageError(f"keyframe {keyframe.id}: height has NaN or Inf in contact")
         pose = _check_pose(start_T_kf, dev)
-        wmap = boundary_weights(contact.unsqueeze(0))[0]
-        points = point_map(height.unsqueeze(0), self.m_per_px)[0][contact]
+        # the window holds the whole contact and background around it, so distances to
+        # the background (and the weights) are those over the full image
+        wmap = boundary_weights(contact.unsqueeze(0), length=h / 60.0)[0]
+        points = point_map(height.unsqueeze(0), self.m_per_px, (rows.start, cols.start), self.shape)[0][contact]
         slot = self._alloc()
-        self._wbuf[slot] = wmap.reshape(-1)
-        self._hbuf[slot] = height.reshape(-1)
+        for buf, part in ((self._wbuf, wmap), (self._hbuf, height)):
+            row = buf[slot].view(self.shape)
+            row.zero_()
+            row[rows, cols] = part
         self._pbuf[slot] = pose
         self._rbuf[slot, 0] = points.norm(dim=1).max().double()
         self._rbuf[slot, 1] = points[:, :2].norm(dim=1).max().double()

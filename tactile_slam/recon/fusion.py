@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import CroppedFrame
+from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in
 from tactile_slam.loop.coverage import CoverageSet, point_map
 from tactile_slam.recon.mesh import TriMesh, grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
@@ -92,11 +92,11 @@ def contact_box(contact: torch.Tensor) -> torch.Tensor:
 def keyframe_contact_box(keyframe: Keyframe) -> torch.Tensor:
     """:func:`contact_box` of a keyframe's contact in full-image pixels, read from its
     stored maps (a cropped keyframe is not expanded for it)."""
-    maps = keyframe.maps
-    if isinstance(maps, CroppedFrame):
-        return contact_box(maps.box.contact[0]) + torch.tensor([maps.left, maps.left, maps.top, maps.top],
-                                                               device=maps.device)
-    return contact_box(maps.contact[0])
+    bounds = contact_bounds(keyframe.maps)
+    if bounds is None:
+        raise ReconError(f"keyframe {keyframe.id} has no contact")
+    r0, r1, c0, c1 = bounds
+    return torch.tensor([c0, c1, r0, r1], device=keyframe.maps.device)
 
 
 def project_into_box(n_T_t: torch.Tensor, points: torch.Tensor, box: torch.Tensor, m_per_px: float,
@@ -149,12 +149,15 @@ def fuse(
         raise ReconError(f"recon.fusion_gate_mm must be > 0, got {config.recon.fusion_gate_mm}")
     boxes = {t: keyframe_contact_box(by_id[t]).to(coverage.device) for t in coverage.active}
     out = []
+    h_img, w_img = coverage.shape
     for t in coverage.active:
-        frame = by_id[t].frame
-        mask = frame.contact[0].to(coverage.device)
-        grid = point_map(frame.height.to(coverage.device, torch.float32), s)[0]  # (H, W, 3)
-        p = grid[mask]  # (N, 3)
-        w_t = coverage.weights(t)[mask]
+        # t's contact box plus a 1 px margin (the central differences of its normals)
+        c0, c1, r0, r1 = boxes[t].tolist()
+        rows, cols = slice(max(r0 - 1, 0), min(r1 + 2, h_img)), slice(max(c0 - 1, 0), min(c1 + 2, w_img))
+        height, sub_mask = (x.to(coverage.device) for x in height_and_contact_in(by_id[t].maps, rows, cols))
+        grid = point_map(height.to(torch.float32)[None], s, (rows.start, cols.start), coverage.shape)[0]
+        p = grid[sub_mask]  # (N, 3), row-major as over the full image
+        w_t = coverage.weights(t)[rows, cols][sub_mask]
         pose_t = coverage.pose(t)
         owned = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
         shift = torch.zeros_like(p)
@@ -163,8 +166,7 @@ def fuse(
             n_T_t = torch.linalg.solve(coverage.pose(n), pose_t)
             # only t's points that reach n's contact can read a non-zero weight
             i, cr = project_into_box(n_T_t, p, boxes[n], s, coverage.shape)
-            h_n, w_n, w_own = (coverage.lookup([n], cr[None], heights=hts, bilinear=bil)[0]
-                               for hts, bil in ((True, True), (False, True), (False, False)))
+            h_n, w_n, w_own = coverage.surface_at(n, cr)
             slide = h_n * s - (p[i] @ n_T_t[2, :3].to(p.dtype) + n_T_t[2, 3])  # along n's z axis
             near = slide.abs() <= gate
             w_n = w_n * near
@@ -175,13 +177,11 @@ def fuse(
             beats = (w_own > w_t[i]) | ((w_own == w_t[i]) & (n > t))
             owned[i[(w_own > 0) & near & beats]] = False
         p = p + shift / total.unsqueeze(1)
-        # normals on the contact box plus a 1 px margin: the same central differences
-        c0, c1, r0, r1 = boxes[t].tolist()
-        r0, c0 = max(r0 - 1, 0), max(c0 - 1, 0)
-        sub, sub_mask = grid[r0:r1 + 2, c0:c1 + 2].clone(), mask[r0:r1 + 2, c0:c1 + 2]
-        sub[sub_mask] = p
-        normals = (grid_normals(sub)[sub_mask].double() @ pose_t[:3, :3].T).float()
+        grid[sub_mask] = p
+        normals = (grid_normals(grid)[sub_mask].double() @ pose_t[:3, :3].T).float()
         points = (p.double() @ pose_t[:3, :3].T + pose_t[:3, 3]).float()
+        mask = torch.zeros(coverage.shape, dtype=torch.bool, device=coverage.device)
+        mask[rows, cols] = sub_mask
         out.append(FusedKeyframe(id=t, mask=mask, points=points, normals=normals, weights=w_t, owned=owned,
                                  outward=-pose_t[:3, 2].float()))
     return out
@@ -189,19 +189,25 @@ def fuse(
 
 def merge_surfaces(fused: Sequence[FusedKeyframe], chunk: int = 64) -> TriMesh:
     """One mesh from the owned parts of fused keyframes: grid triangles over each
-    keyframe's owned pixels (``chunk`` keyframes triangulated at once), concatenated.
-    Vertex normals are the fused grids' outward normals (central differences, the
-    ones Poisson meshing uses). Ownership leaves one sheet per surface region (no
-    stacked copies); seams between keyframes are not stitched. Vertices in no
-    triangle (isolated owned pixels) are dropped."""
+    keyframe's owned pixels (``chunk`` keyframes triangulated at once, each over its
+    contact box), concatenated. Vertex normals are the fused grids' outward normals
+    (central differences, the ones Poisson meshing uses). Ownership leaves one sheet
+    per surface region (no stacked copies); seams between keyframes are not stitched.
+    Vertices in no triangle (isolated owned pixels) are dropped."""
     if not fused:
         raise ReconError("fusion produced no keyframes to merge")
     faces, offset = [], 0
     for a in range(0, len(fused), chunk):
         part = fused[a:a + chunk]
-        keep = torch.zeros((len(part), *part[0].mask.shape), dtype=torch.bool, device=part[0].mask.device)
-        for j, fk in enumerate(part):
-            keep[j][fk.mask] = fk.owned
+        boxes = torch.stack([contact_box(fk.mask) for fk in part]).tolist()  # (col0, col1, row0, row1)
+        h = max(b[3] - b[2] for b in boxes) + 1
+        w = max(b[1] - b[0] for b in boxes) + 1
+        # each box at the top left of its slot: row-major order within a box is the
+        # order of its pixels in the full mask, and triangles never leave a box
+        keep = torch.zeros((len(part), h, w), dtype=torch.bool, device=part[0].mask.device)
+        for j, (fk, (c0, c1, r0, r1)) in enumerate(zip(part, boxes)):
+            box = keep[j, :r1 - r0 + 1, :c1 - c0 + 1]
+            box[fk.mask[r0:r1 + 1, c0:c1 + 1]] = fk.owned
         faces.append(grid_faces(keep) + offset)
         offset += sum(int(fk.owned.sum()) for fk in part)
     f = torch.cat(faces)

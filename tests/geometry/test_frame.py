@@ -8,7 +8,8 @@ import torch
 
 from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError, crop_to_contact, full_batch
+from tactile_slam.geometry.frame import (Frame, FrameBuilder, InputError, crop_to_contact, full_batch,
+                                         contact_bounds, height_and_contact_in)
 
 from . import presses
 from .surfaces import central_gradients, spherical_cap
@@ -351,6 +352,27 @@ class TestCropToContact:
             full_batch([])
         with pytest.raises(InputError, match="different sizes"):
             full_batch([crop_b, _touch(shape=(40, 80), rows=(5, 9), device=device)])
+
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_window_reads_as_the_expanded_frame(self, dtype, device):
+        """A window's height and contact are those of the expanded crop, for windows
+        inside, straddling and outside the box, and views of a full frame's maps."""
+        fr = _touch(dtype, device)
+        crop = crop_to_contact(fr, margin=3)
+        full = crop.expand()
+        for rows, cols in ((slice(20, 30), slice(40, 50)), (slice(0, 60), slice(0, 80)), (slice(10, 25), slice(30, 45)),
+                           (slice(50, 60), slice(0, 10))):
+            height, contact = height_and_contact_in(crop, rows, cols)
+            assert height.dtype == dtype and contact.dtype == torch.bool and height.device == fr.device
+            assert torch.equal(height, full.height[0, rows, cols]) and torch.equal(contact, full.contact[0, rows, cols])
+            h_full, c_full = height_and_contact_in(fr, rows, cols)
+            assert torch.equal(h_full, fr.height[0, rows, cols]) and torch.equal(c_full, fr.contact[0, rows, cols])
+        with pytest.raises(InputError, match="B = 1"):
+            height_and_contact_in(Frame.cat([fr, fr]), slice(0, 2), slice(0, 2))
+        rows, cols = fr.contact[0].nonzero(as_tuple=True)
+        want = (int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max()))
+        assert contact_bounds(crop) == contact_bounds(fr) == want
+        assert contact_bounds(replace(fr, contact=torch.zeros_like(fr.contact))) is None
 
     def test_exceptions(self):
         two = Frame.cat([_touch(), _touch()])

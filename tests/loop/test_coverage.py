@@ -91,6 +91,15 @@ def test_point_map_convention(dtype):
     assert p[0, 0, 160, 0] == pytest.approx(0.5 * S) and p[0, 120, 0, 1] == pytest.approx(0.5 * S)
 
 
+def test_point_map_of_a_window_is_the_full_maps_window(dtype):
+    """A window with its origin and the full image's shape gives exactly the full map's
+    points there (the same pixel centres, not the window's own)."""
+    h = torch.randn(1, H, W, dtype=dtype)
+    full = point_map(h, S)
+    win = point_map(h[:, 37:90, 201:260], S, origin=(37, 201), full_shape=(H, W))
+    assert torch.equal(win, full[:, 37:90, 201:260])
+
+
 # ------------------------------------------------------------------ coverage set
 
 

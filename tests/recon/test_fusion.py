@@ -190,6 +190,41 @@ def test_map_reads_match_scipy_interpolation():
     np.testing.assert_array_equal(w_near, expected)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_surface_reads_of_a_coverage_keyframe_match_scipy(dtype):
+    """``CoverageSet.surface_at`` (one pass over the corners for both maps) reads the
+    keyframe's stored height and weight maps as scipy interpolates them: bilinear
+    height and weight, zeros outside the image, and the weight at the nearest pixel.
+    The height is kept within 1 px of the contact box, all that a read with a non-zero
+    bilinear weight reaches."""
+    from scipy.ndimage import map_coordinates
+
+    from tactile_slam.loop.coverage import CoverageSet
+
+    kf = flat_keyframe(0, 40, 200, 60, 300)
+    rng = np.random.default_rng(3)
+    kf.maps.height[0] = torch.from_numpy(rng.uniform(-3.0, 0.0, size=(H, W))).float()
+    cs = CoverageSet(CFG)
+    cs.add(kf, torch.eye(4, dtype=torch.float64))
+    height, weight = kf.maps.height[0].double().numpy(), cs.weights(0).double().numpy()
+    kept = np.zeros_like(height, dtype=bool)
+    kept[39:201, 59:301] = True  # heights are kept within 1 px of the contact box
+    height = np.where(kept, height, 0.0)
+    assert (weight[~kept] == 0).all()
+    cr = np.concatenate([rng.uniform(-3, W + 2, size=(500, 1)), rng.uniform(-3, H + 2, size=(500, 1))], 1)
+    cr_t = torch.from_numpy(cr).to(dtype)
+    h_bil, w_bil, w_near = cs.surface_at(0, cr_t)
+    cr = cr_t.double().numpy()  # the positions as read
+    coords = cr[:, ::-1].T  # (row, col)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    np.testing.assert_allclose(h_bil, map_coordinates(height, coords, order=1, mode="grid-constant"), atol=3 * tol)
+    np.testing.assert_allclose(w_bil, map_coordinates(weight, coords, order=1, mode="grid-constant"), atol=tol)
+    r, c = np.round(cr[:, 1]).astype(int), np.round(cr[:, 0]).astype(int)
+    inside = (r >= 0) & (r < H) & (c >= 0) & (c < W)
+    np.testing.assert_array_equal(w_near, np.where(inside, weight[r.clip(0, H - 1), c.clip(0, W - 1)], 0.0))
+    assert (w_bil[~inside] == 0).sum() > 0 and (w_near > 0).sum() > 100
+
+
 def test_box_projection_keeps_every_point_that_can_read_the_box():
     """Points dropped by the box test read 0 from any map that is 0 outside the box."""
     rng = np.random.default_rng(2)
