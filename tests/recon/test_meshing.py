@@ -8,7 +8,7 @@ import torch
 
 from tactile_slam.config import ReconConfig
 from tactile_slam.recon import ReconError, poisson_mesh
-from tactile_slam.recon.meshing import poisson_depth, voxel_average
+from tactile_slam.recon.meshing import poisson_depth, voxel_average, voxel_keys, voxel_sums
 
 
 def sphere_samples(n: int, radius_m: float, seed: int = 0, hemisphere: bool = False):
@@ -54,6 +54,37 @@ def test_voxel_budget_coarsens_exactly():
     order_e = np.lexsort(np.floor(expected / voxel).T)
     np.testing.assert_allclose(q.numpy()[order_q], expected[order_e], atol=1e-12)
     np.testing.assert_allclose(m.numpy()[order_q], normals[order_e], atol=1e-12)
+
+
+def test_voxel_average_of_parts_equals_the_whole(dtype):
+    """Parts (one per keyframe, uneven, one empty), the chunked sums and a unit scale
+    give the single tensor's averages, in the same order."""
+    rng = np.random.default_rng(1)
+    p = torch.from_numpy(rng.uniform(-3.0, 3.0, size=(5000, 3))).to(dtype)
+    n = torch.nn.functional.normalize(torch.from_numpy(rng.normal(size=(5000, 3))), dim=1).to(dtype)
+    q, m, voxel = voxel_average(p * 1000.0, n, 400.0)
+    cuts = [0, 7, 7, 1800, 4999, 5000]
+    parts = [(p[a:b], n[a:b]) for a, b in zip(cuts[:-1], cuts[1:])]
+    q2, m2, voxel2 = voxel_average([x for x, _ in parts], [y for _, y in parts], 400.0, scale=1000.0)
+    assert voxel2 == voxel and q2.shape == q.shape and len(q) < len(p)
+    tol = 1e-9 if dtype == torch.float64 else 1e-3
+    torch.testing.assert_close(q2, q, atol=tol, rtol=0)
+    torch.testing.assert_close(m2, m, atol=tol * 1e-3, rtol=1e-4)
+    sums = voxel_sums([(p[:100], torch.ones(100, 1, dtype=dtype)), (p[100:], torch.ones(4900, 1, dtype=dtype))],
+                      0.4, chunk=64)
+    assert float(sums.sum()) == 5000 and len(sums) == len(q)
+
+
+def test_voxel_keys_order_and_range():
+    """Keys sort as the voxel indices (i, j, k) lexicographically, negative indices
+    included; points beyond 2^20 voxels from the origin are refused."""
+    rng = np.random.default_rng(2)
+    p = torch.from_numpy(rng.uniform(-50.0, 50.0, size=(2000, 3)))
+    idx = np.floor(p.numpy() / 0.7).astype(np.int64)
+    order = np.argsort(voxel_keys(p, 0.7).numpy(), kind="stable")
+    np.testing.assert_array_equal(idx[order], idx[np.lexsort(idx.T[::-1])])
+    with pytest.raises(ReconError, match="voxels"):
+        voxel_keys(torch.tensor([[0.0, 0.0, 2.0**20 * 0.5]], dtype=torch.float64), 0.5)
 
 
 def test_poisson_depth_clamps():
