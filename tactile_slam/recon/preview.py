@@ -20,9 +20,8 @@ import torch
 from tactile_slam.config import Config
 from tactile_slam.loop.coverage import boundary_weights, point_map
 from tactile_slam.recon.fusion import ReconError
+from tactile_slam.recon.meshing import voxel_keys
 from tactile_slam.tracking.keyframe import Keyframe
-
-_BITS = 21  # per axis in the packed voxel key: +-1e6 voxels
 
 
 class PreviewSurface:
@@ -89,8 +88,7 @@ class PreviewSurface:
         pose = self._poses[kf_id]
         p = pts @ pose[:3, :3].T + pose[:3, 3]
         n = nrm @ pose[:3, :3].T
-        q = torch.floor(p / self.voxel).long() + (1 << (_BITS - 1))
-        keys = (q[:, 0] << (2 * _BITS)) | (q[:, 1] << _BITS) | q[:, 2]
+        keys = voxel_keys(p, self.voxel)
         all_keys = torch.cat([self._keys, keys])
         uniq, inv = torch.unique(all_keys, return_inverse=True)
         m = uniq.shape[0]
