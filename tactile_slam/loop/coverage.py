@@ -134,17 +134,12 @@ def point_map(height: torch.Tensor, m_per_px: float, origin: tuple[int, int] = (
     )
 
 
-def transform_points(a_T_b: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-    """Apply ``(P, 4, 4)`` transforms to ``(P, N, 3)`` points (b -> a); float32 result."""
-    rot = a_T_b[:, :3, :3].to(points.dtype)
-    trans = a_T_b[:, :3, 3].to(points.dtype)
+def transform_points(a_T_b: torch.Tensor, points: torch.Tensor, rows: int = 3) -> torch.Tensor:
+    """Apply ``(P, 4, 4)`` transforms to ``(P, N, 3)`` points (b -> a): the first
+    ``rows`` coordinates (2: x and y only), ``(P, N, rows)`` in the points' dtype."""
+    rot = a_T_b[:, :rows, :3].to(points.dtype)
+    trans = a_T_b[:, :rows, 3].to(points.dtype)
     return torch.baddbmm(trans.unsqueeze(1), points, rot.transpose(1, 2))
-
-
-def pixel_coords(points: torch.Tensor, m_per_px: float, shape: tuple[int, int]) -> torch.Tensor:
-    """Orthographic projection: ``(..., 3)`` metres -> ``(..., 2)`` float ``(col, row)``."""
-    h, w = shape
-    return torch.stack([points[..., 0] / m_per_px + (w - 1) / 2.0, points[..., 1] / m_per_px + (h - 1) / 2.0], -1)
 
 
 def lookup(buffer: torch.Tensor, slots: torch.Tensor, cr: torch.Tensor, shape: tuple[int, int],
@@ -164,10 +159,17 @@ def lookup(buffer: torch.Tensor, slots: torch.Tensor, cr: torch.Tensor, shape: t
     """
     if bilinear:
         return lookup_bilinear([buffer], slots, cr, shape)[0]
+    return lookup_nearest(buffer, slots, cr[..., 0], cr[..., 1], shape)
+
+
+def lookup_nearest(buffer: torch.Tensor, slots: torch.Tensor, col: torch.Tensor, row: torch.Tensor,
+                   shape: tuple[int, int]) -> torch.Tensor:
+    """:func:`lookup` at the nearest pixel (ties round half to even), 0 outside, with the
+    positions as separate ``(P, N)`` column and row tensors."""
     h, w = shape
     rows = slots.view(-1, 1) * (h * w)
-    col = torch.round(cr[..., 0]).long()
-    row = torch.round(cr[..., 1]).long()
+    col = torch.round(col).long()
+    row = torch.round(row).long()
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
     return buffer.reshape(-1).take(rows + row.clamp(0, h - 1) * w + col.clamp(0, w - 1)) * inside
 
@@ -493,13 +495,7 @@ class CoverageSet:
             valid = torch.nn.utils.rnn.pad_sequence(
                 [torch.ones(r.points.shape[0], dtype=torch.bool, device=pts.device) for r in chunk], batch_first=True
             )
-            moved = transform_points(t_T_r[start:stop], pts)
-            cr = pixel_coords(moved, self.m_per_px, self.shape)
-            slots = torch.full((len(chunk),), tar.slot, device=pts.device)
-            w = lookup(self._wbuf, slots, cr, self.shape)
-            if self.depth_gate_m is not None:
-                h = lookup(self._hbuf, slots, cr, self.shape) * self.m_per_px
-                w = w * ((moved[..., 2] - h).abs() < self.depth_gate_m)
+            w = self._weights_at(torch.full((len(chunk),), tar.slot, device=pts.device), t_T_r[start:stop], pts)
             out.append((w * valid).sum(dim=1))
             start = stop
         return torch.cat(out)
@@ -510,15 +506,25 @@ class CoverageSet:
         step = max(1, _CHUNK_POINTS // max(points.shape[0], 1))
         for start in range(0, len(refs), step):
             chunk = refs[start:start + step]
-            moved = transform_points(r_T_p[start:start + step], points.unsqueeze(0).expand(len(chunk), -1, -1))
-            cr = pixel_coords(moved, self.m_per_px, self.shape)
             slots = torch.tensor([r.slot for r in chunk], device=points.device)
-            w = lookup(self._wbuf, slots, cr, self.shape)
-            if self.depth_gate_m is not None:
-                h = lookup(self._hbuf, slots, cr, self.shape) * self.m_per_px
-                w = w * ((moved[..., 2] - h).abs() < self.depth_gate_m)
-            out.append(w)
+            out.append(self._weights_at(slots, r_T_p[start:start + step],
+                                        points.unsqueeze(0).expand(len(chunk), -1, -1)))
         return torch.cat(out)
+
+    def _weights_at(self, slots: torch.Tensor, a_T_b: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """Weights of the maps in ``slots`` (``(P,)``) at ``(P, N, 3)`` points moved by
+        ``(P, 4, 4)`` ``a_T_b`` into each map's frame, at the nearest pixel (0 outside the
+        image; with the depth gate, 0 where the point is off the map's surface): ``(P, N)``."""
+        gate = self.depth_gate_m is not None
+        moved = transform_points(a_T_b, points, 3 if gate else 2)  # z only for the depth gate
+        h, w = self.shape
+        col = moved[..., 0] / self.m_per_px + (w - 1) / 2.0
+        row = moved[..., 1] / self.m_per_px + (h - 1) / 2.0
+        weights = lookup_nearest(self._wbuf, slots, col, row, self.shape)
+        if gate:
+            heights = lookup_nearest(self._hbuf, slots, col, row, self.shape) * self.m_per_px
+            weights = weights * ((moved[..., 2] - heights).abs() < self.depth_gate_m)
+        return weights
 
     def revealed(self, node: _Node) -> float:
         """Weight of ``node`` not covered by its neighbours (weighted px):
