@@ -196,7 +196,7 @@ def merge_surfaces(fused: Sequence[FusedKeyframe], chunk: int = 64) -> TriMesh:
     Vertices in no triangle (isolated owned pixels) are dropped."""
     if not fused:
         raise ReconError("fusion produced no keyframes to merge")
-    faces, offset = [], 0
+    faces, verts, norms, offset = [], [], [], 0
     for a in range(0, len(fused), chunk):
         part = fused[a:a + chunk]
         boxes = torch.stack([contact_box(fk.mask) for fk in part]).tolist()  # (col0, col1, row0, row1)
@@ -208,14 +208,16 @@ def merge_surfaces(fused: Sequence[FusedKeyframe], chunk: int = 64) -> TriMesh:
         for j, (fk, (c0, c1, r0, r1)) in enumerate(zip(part, boxes)):
             box = keep[j, :r1 - r0 + 1, :c1 - c0 + 1]
             box[fk.mask[r0:r1 + 1, c0:c1 + 1]] = fk.owned
-        faces.append(grid_faces(keep) + offset)
-        offset += sum(int(fk.owned.sum()) for fk in part)
+        f = grid_faces(keep)  # into this chunk's owned points
+        # triangles never join keyframes: the chunk's vertices in no triangle go now
+        used = torch.zeros(int(keep.sum()), dtype=torch.bool, device=f.device)
+        used[f.reshape(-1)] = True
+        remap = torch.cumsum(used, 0) - 1
+        faces.append(remap[f] + offset)
+        verts.append(torch.cat([fk.points[fk.owned] for fk in part])[used])
+        norms.append(torch.cat([fk.normals[fk.owned] for fk in part])[used])
+        offset += int(used.sum())
     f = torch.cat(faces)
     if f.numel() == 0:
         raise ReconError("fusion produced no triangles (contacts too small or fully overlapped)")
-    v = torch.cat([fk.points[fk.owned] for fk in fused])
-    n = torch.cat([fk.normals[fk.owned] for fk in fused])
-    used = torch.zeros(v.shape[0], dtype=torch.bool, device=v.device)
-    used[f.reshape(-1)] = True
-    remap = torch.cumsum(used, 0) - 1
-    return TriMesh(vertices=v[used].cpu().double(), faces=remap[f].cpu(), normals=n[used].cpu().double())
+    return TriMesh(vertices=torch.cat(verts).cpu().double(), faces=f.cpu(), normals=torch.cat(norms).cpu().double())
