@@ -171,7 +171,7 @@ def fuse(
             near = slide.abs() <= gate
             w_n = w_n * near
             shift.index_add_(0, i, (w_n * slide).unsqueeze(1) * n_T_t[2, :3].to(p.dtype))
-            total = total.index_add(0, i, w_n)
+            total.index_add_(0, i, w_n)
             # Ownership: the keyframe with the larger weight (deeper inside its contact,
             # at its nearest pixel) keeps a shared point; the later keyframe on ties.
             beats = (w_own > w_t[i]) | ((w_own == w_t[i]) & (n > t))
