@@ -83,6 +83,21 @@ def _dissect(nodes: np.ndarray, ea: np.ndarray, eb: np.ndarray, coords: np.ndarr
     return len(out) - 1
 
 
+def _lower_schur_update(F22: torch.Tensor, L21: torch.Tensor, panels: int = 4) -> torch.Tensor:
+    """``F22 - L21 L21^T`` in place, on and below the diagonal only: nothing reads a front's
+    upper triangle (Cholesky and the triangular solve read the lower one, and extend-add
+    maps a child's lower triangle into its parent's, the boundary being sorted). Row panels
+    stop at their diagonal block, so four panels do 10/16 of a full product's work.
+    ``(m, m)``, ``(m, k)`` -> ``F22``."""
+    m = F22.shape[0]
+    if m < 64 * panels:  # small fronts: one product
+        return F22.addmm_(L21, L21.mT, alpha=-1.0)
+    cuts = [m * i // panels for i in range(panels + 1)]
+    for a, b in zip(cuts[:-1], cuts[1:]):
+        F22[a:b, :b].addmm_(L21[a:b], L21[:b].mT, alpha=-1.0)
+    return F22
+
+
 class BlockCholesky:
     """Symbolic analysis of an SPD block matrix; :meth:`factor` then :meth:`solve`.
 
@@ -181,8 +196,8 @@ class BlockCholesky:
             F = F.reshape(m, m)
             for ch, cmap in zip(fr.children, fr.child_maps):
                 U = updates[ch]
-                if U is not None and U.numel():  # extend-add: whole rows out, columns added, rows back
-                    F.index_copy_(0, cmap, F.index_select(0, cmap).index_add_(1, cmap, U))
+                if U is not None and U.numel():  # extend-add: one scatter-add at flat positions
+                    F.view(-1).index_add_(0, (cmap[:, None] * m + cmap[None, :]).reshape(-1), U.reshape(-1))
                 updates[ch] = None
             if k == 0:
                 self._L11.append(torch.zeros(0, 0, dtype=torch.float64))
@@ -195,7 +210,7 @@ class BlockCholesky:
             L21 = torch.linalg.solve_triangular(L11.mT, F[k:, :k], upper=True, left=False)
             self._L11.append(L11)
             self._L21.append(L21)
-            updates[f] = F[k:, k:].addmm_(L21, L21.mT, alpha=-1.0) if m > k else None
+            updates[f] = _lower_schur_update(F[k:, k:], L21) if m > k else None
 
     def solve(self, rhs: np.ndarray) -> np.ndarray:
         """Solve ``A x = rhs`` with the last factorisation; ``rhs`` ``(n * b,)``."""

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+import torch
 
-from tactile_slam.posegraph.cholesky import BlockCholesky, FactorError
+from tactile_slam.posegraph.cholesky import BlockCholesky, FactorError, _lower_schur_update
 
 
 def _random_block_spd(n: int, edges: np.ndarray, seed: int = 0, b: int = 6):
@@ -39,6 +40,34 @@ def test_matches_dense_solve(n, leaf):
     ch.factor(blocks)
     rhs = rng.normal(size=n * 6)
     assert np.allclose(ch.solve(rhs), np.linalg.solve(dense, rhs), rtol=1e-8, atol=1e-10)
+
+
+def test_large_fronts_take_the_panelled_lower_update():
+    """A graph with many long edges has fronts whose boundary exceeds the one-product size
+    (the row-panel Schur update runs); the solve still matches the dense one."""
+    n = 400
+    rng = np.random.default_rng(5)
+    coords = np.cumsum(rng.normal(size=(n, 3)), axis=0)
+    chain = [(k, k + 1) for k in range(n - 1)]
+    extra = [tuple(sorted(rng.choice(n, 2, replace=False))) for _ in range(n)]
+    edges = np.array(sorted(set(chain) | set(extra)), dtype=np.int64)
+    dense, rows, cols, blocks = _random_block_spd(n, edges, seed=5)
+    ch = BlockCholesky(n, rows, cols, coords, leaf_size=16)
+    assert max(6 * f.bnd.size for f in ch.fronts) >= 256
+    ch.factor(blocks)
+    rhs = rng.normal(size=n * 6)
+    assert np.allclose(ch.solve(rhs), np.linalg.solve(dense, rhs), rtol=1e-8, atol=1e-10)
+
+
+@pytest.mark.parametrize("m", [10, 300, 1001])
+def test_lower_schur_update_matches_the_full_product_below_the_diagonal(m):
+    rng = np.random.default_rng(m)
+    F = torch.from_numpy(rng.normal(size=(m, m)))
+    L = torch.from_numpy(rng.normal(size=(m, 37)))
+    want = F - L @ L.T
+    got = _lower_schur_update(F.clone(), L)
+    lower = torch.ones(m, m, dtype=torch.bool).tril()
+    torch.testing.assert_close(got[lower], want[lower], rtol=1e-12, atol=1e-12)
 
 
 def test_disconnected_components_and_degenerate_coordinates():
