@@ -72,9 +72,10 @@ class _Problem:
     ``var_rows`` ``(n,)`` are graph rows being optimised; all other poses stay fixed. The
     normal matrix is ``6n x 6n`` with one 6x6 block per slot; the slots and the Cholesky
     ordering (on the poses' translations at construction) are built once here.
+    ``check_anchored`` False skips the gauge check, for a problem that is only linearised.
     """
 
-    def __init__(self, graph: PoseGraph, var_rows: torch.Tensor) -> None:
+    def __init__(self, graph: PoseGraph, var_rows: torch.Tensor, check_anchored: bool = True) -> None:
         n_all = graph.num_nodes
         self.var_rows = var_rows
         self.n = n = var_rows.numel()
@@ -93,7 +94,8 @@ class _Problem:
         pkeep = local[pr.rows] >= 0
         self.prow, self.plocal = pr.rows[pkeep], local[pr.rows[pkeep]]
         self.pZ, self.psigma = pr.Z[pkeep], pr.sigma[pkeep]
-        self._check_anchored()
+        if check_anchored:
+            self._check_anchored()
         self._build_pattern(graph.poses()[var_rows, :3, 3].numpy())
 
     def _check_anchored(self) -> None:
@@ -125,6 +127,11 @@ class _Problem:
         m = int(both.sum())
         self.slot_ij_both, self.slot_ji_both = inv[n:n + m], inv[n + m:]
         self.both = both
+        # what every linearisation scatters into: rows of the variable ends, their diagonal slots
+        self.vi, self.vj = self.li >= 0, self.lj >= 0
+        self.gi, self.gj = self.li[self.vi], self.lj[self.vj]
+        self.slot_i, self.slot_j = self.slot_diag[self.gi], self.slot_diag[self.gj]
+        self.slot_p = self.slot_diag[self.plocal]
         self._keys, self._coords = keys, coords
         self._chol: BlockCholesky | None = None
 
@@ -158,16 +165,16 @@ class _Problem:
 
         blocks = torch.zeros(self.n_blocks, 6, 6, dtype=torch.float64)
         g = torch.zeros(self.n, 6, dtype=torch.float64)
-        vi, vj = self.li >= 0, self.lj >= 0
+        vi, vj = self.vi, self.vj
         JiT, JjT = Ji.transpose(1, 2), Jj.transpose(1, 2)
-        blocks.index_add_(0, self.slot_diag[self.li[vi]], JiT[vi] @ Ji[vi])
-        blocks.index_add_(0, self.slot_diag[self.lj[vj]], JjT[vj] @ Jj[vj])
+        blocks.index_add_(0, self.slot_i, JiT[vi] @ Ji[vi])
+        blocks.index_add_(0, self.slot_j, JjT[vj] @ Jj[vj])
         Hij = JiT[self.both] @ Jj[self.both]
         blocks.index_add_(0, self.slot_ij_both, Hij)
         blocks.index_add_(0, self.slot_ji_both, Hij.transpose(1, 2))
-        blocks.index_add_(0, self.slot_diag[self.plocal], Jp.transpose(1, 2) @ Jp)
-        g.index_add_(0, self.li[vi], (JiT[vi] @ e[vi, :, None]).squeeze(-1))
-        g.index_add_(0, self.lj[vj], (JjT[vj] @ e[vj, :, None]).squeeze(-1))
+        blocks.index_add_(0, self.slot_p, Jp.transpose(1, 2) @ Jp)
+        g.index_add_(0, self.gi, (JiT[vi] @ e[vi, :, None]).squeeze(-1))
+        g.index_add_(0, self.gj, (JjT[vj] @ e[vj, :, None]).squeeze(-1))
         g.index_add_(0, self.plocal, (Jp.transpose(1, 2) @ ep[:, :, None]).squeeze(-1))
         return blocks.numpy(), g.numpy().reshape(-1)
 
