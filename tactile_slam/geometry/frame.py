@@ -170,17 +170,34 @@ def full_batch(parts: list[Frame | CroppedFrame]) -> Frame:
     return out
 
 
+def mask_bounds(mask: torch.Tensor) -> tuple[int, int, int, int] | None:
+    """Bounding box ``(r0, r1, c0, c1)`` (half-open) of a ``(H, W)`` bool mask, or ``None``."""
+    rows = torch.nonzero(mask.any(1)).flatten()
+    if rows.numel() == 0:
+        return None
+    cols = torch.nonzero(mask.any(0)).flatten()
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
 def contact_bounds(part: Frame | CroppedFrame) -> tuple[int, int, int, int] | None:
     """Inclusive ``(row_min, row_max, col_min, col_max)`` of one frame's contact in
     full-image pixels (a cropped frame is not expanded), or ``None`` without contact."""
     if len(part) != 1:
         raise InputError(f"contact bounds are read from one frame (B = 1), got B = {len(part)}")
     maps, top, left = (part.box, part.top, part.left) if isinstance(part, CroppedFrame) else (part, 0, 0)
-    rows = maps.contact[0].any(dim=1).nonzero()[:, 0]
-    if rows.numel() == 0:
+    box = mask_bounds(maps.contact[0])
+    if box is None:
         return None
-    cols = maps.contact[0].any(dim=0).nonzero()[:, 0]
-    return int(rows[0]) + top, int(rows[-1]) + top, int(cols[0]) + left, int(cols[-1]) + left
+    r0, r1, c0, c1 = box
+    return r0 + top, r1 - 1 + top, c0 + left, c1 - 1 + left
+
+
+def window_around(bounds: tuple[int, int, int, int], margin: int, shape: tuple[int, int]) -> tuple[slice, slice]:
+    """Rows and columns within ``margin`` pixels of inclusive ``bounds`` (from
+    :func:`contact_bounds`), clipped to an image of ``shape`` ``(H, W)``."""
+    r0, r1, c0, c1 = bounds
+    h, w = shape
+    return slice(max(r0 - margin, 0), min(r1 + margin + 1, h)), slice(max(c0 - margin, 0), min(c1 + margin + 1, w))
 
 
 def height_and_contact_in(part: Frame | CroppedFrame, rows: slice, cols: slice) -> tuple[torch.Tensor, torch.Tensor]:
@@ -235,18 +252,12 @@ def crop_to_contact(frame: Frame, margin: int = 8) -> CroppedFrame:
         raise InputError(f"crop_to_contact takes one frame (B = 1), got B = {len(frame)}")
     if margin < 3:
         raise InputError(f"crop margin must be >= 3 px (the widest stencil that reads past the contact), got {margin}")
-    h, w = frame.shape
-    rows = torch.nonzero(frame.contact[0].any(dim=1)).flatten()
-    cols = torch.nonzero(frame.contact[0].any(dim=0)).flatten()
-    if len(rows) == 0:
-        r0 = r1 = c0 = c1 = 0
-    else:
-        r0, r1 = max(int(rows[0]) - margin, 0), min(int(rows[-1]) + margin + 1, h)
-        c0, c1 = max(int(cols[0]) - margin, 0), min(int(cols[-1]) + margin + 1, w)
-
+    bounds = contact_bounds(frame)
+    rows, cols = (slice(0, 0), slice(0, 0)) if bounds is None else window_around(bounds, margin, frame.shape)
+    r0, r1, c0, c1 = rows.start, rows.stop, cols.start, cols.stop
     box = own_maps(replace(frame, height=frame.height[:, r0:r1, c0:c1], contact=frame.contact[:, r0:r1, c0:c1],
                            normals=frame.normals[:, r0:r1, c0:c1], curvature=frame.curvature[:, r0:r1, c0:c1]))
-    return CroppedFrame(box=box, top=r0, left=c0, full_shape=(h, w))
+    return CroppedFrame(box=box, top=r0, left=c0, full_shape=tuple(frame.shape))
 
 
 def check_images(bgr: torch.Tensor, shape: tuple[int, int]) -> None:

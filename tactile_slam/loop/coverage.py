@@ -30,7 +30,7 @@ import torch
 import torch.nn.functional as F
 
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in
+from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in, window_around
 from tactile_slam.tracking.keyframe import Keyframe
 
 # Points per projection chunk: bounds the memory of batched projections.
@@ -375,11 +375,10 @@ class CoverageSet:
         # the contact's bounding box and 1 px (what a bilinear read of a point with a
         # contact corner reaches): the weights are 0 outside it and no read that can
         # count needs a height there
-        box = contact_bounds(maps)
-        if box is None:
+        bounds = contact_bounds(maps)
+        if bounds is None:
             raise CoverageError(f"keyframe {keyframe.id} has no contact pixels")
-        h, w = self.shape
-        rows, cols = slice(max(box[0] - 1, 0), min(box[1] + 2, h)), slice(max(box[2] - 1, 0), min(box[3] + 2, w))
+        rows, cols = window_around(bounds, 1, self.shape)
         height, contact = (x.to(dev) for x in height_and_contact_in(maps, rows, cols))
         height = height.to(torch.float32)
         if not torch.isfinite(height[contact]).all():
@@ -387,7 +386,7 @@ class CoverageSet:
         pose = _check_pose(start_T_kf, dev)
         # the window holds the whole contact and background around it, so distances to
         # the background (and the weights) are those over the full image
-        wmap = boundary_weights(contact.unsqueeze(0), length=h / 60.0)[0]
+        wmap = boundary_weights(contact.unsqueeze(0), length=self.shape[0] / 60.0)[0]
         points = point_map(height.unsqueeze(0), self.m_per_px, (rows.start, cols.start), self.shape)[0][contact]
         slot = self._alloc()
         for buf, part in ((self._wbuf, wmap), (self._hbuf, height)):

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 import torch
 
+from tactile_slam.geometry.frame import mask_bounds
 from tactile_slam.geometry.morphology import erode
 
 BACKENDS = ("opencv", "kornia")
@@ -111,15 +112,6 @@ def _check_maps(image: torch.Tensor, contact: torch.Tensor) -> None:
                            f"{contact.dtype}")
 
 
-def contact_bbox(contact: torch.Tensor) -> tuple[int, int, int, int] | None:
-    """Bounding box ``(r0, r1, c0, c1)`` (half-open) of a ``(H, W)`` bool mask, or ``None``."""
-    rows = torch.nonzero(contact.any(1)).flatten()
-    if rows.numel() == 0:
-        return None
-    cols = torch.nonzero(contact.any(0)).flatten()
-    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-
-
 @lru_cache(maxsize=4)
 def _opencv_sift(contrast_threshold: float, octave_layers: int) -> cv2.SIFT:
     return cv2.SIFT_create(nfeatures=0, nOctaveLayers=octave_layers, contrastThreshold=contrast_threshold)
@@ -174,7 +166,7 @@ def detect(image: torch.Tensor, contact: torch.Tensor, settings: SiftSettings | 
     _check_maps(image, contact)
     if image.dtype != torch.uint8:
         raise FeatureError(f"expected a uint8 image, got {image.dtype}")
-    box = contact_bbox(contact)
+    box = mask_bounds(contact)
     if box is None:
         return Features.empty()
     r0, r1, c0, c1 = box

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in
+from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in, mask_bounds, window_around
 from tactile_slam.loop.coverage import CoverageSet, point_map
 from tactile_slam.recon.mesh import TriMesh, grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
@@ -84,9 +84,8 @@ def grid_normals(points: torch.Tensor) -> torch.Tensor:
 def contact_box(contact: torch.Tensor) -> torch.Tensor:
     """Bounding box of a non-empty ``(H, W)`` bool mask: ``(4,)`` int64
     ``(col_min, col_max, row_min, row_max)``, inclusive."""
-    cols = contact.any(dim=0).nonzero()[:, 0]
-    rows = contact.any(dim=1).nonzero()[:, 0]
-    return torch.stack([cols[0], cols[-1], rows[0], rows[-1]])
+    r0, r1, c0, c1 = mask_bounds(contact)
+    return torch.tensor([c0, c1 - 1, r0, r1 - 1], device=contact.device)
 
 
 def keyframe_contact_box(keyframe: Keyframe) -> torch.Tensor:
@@ -149,11 +148,10 @@ def fuse(
         raise ReconError(f"recon.fusion_gate_mm must be > 0, got {config.recon.fusion_gate_mm}")
     boxes = {t: keyframe_contact_box(by_id[t]).to(coverage.device) for t in coverage.active}
     out = []
-    h_img, w_img = coverage.shape
     for t in coverage.active:
         # t's contact box plus a 1 px margin (the central differences of its normals)
         c0, c1, r0, r1 = boxes[t].tolist()
-        rows, cols = slice(max(r0 - 1, 0), min(r1 + 2, h_img)), slice(max(c0 - 1, 0), min(c1 + 2, w_img))
+        rows, cols = window_around((r0, r1, c0, c1), 1, coverage.shape)
         height, sub_mask = (x.to(coverage.device) for x in height_and_contact_in(by_id[t].maps, rows, cols))
         grid = point_map(height.to(torch.float32)[None], s, (rows.start, cols.start), coverage.shape)[0]
         p = grid[sub_mask]  # (N, 3), row-major as over the full image
@@ -199,15 +197,14 @@ def merge_surfaces(fused: Sequence[FusedKeyframe], chunk: int = 64) -> TriMesh:
     faces, verts, norms, offset = [], [], [], 0
     for a in range(0, len(fused), chunk):
         part = fused[a:a + chunk]
-        boxes = torch.stack([contact_box(fk.mask) for fk in part]).tolist()  # (col0, col1, row0, row1)
-        h = max(b[3] - b[2] for b in boxes) + 1
-        w = max(b[1] - b[0] for b in boxes) + 1
+        boxes = [mask_bounds(fk.mask) for fk in part]  # (r0, r1, c0, c1), half-open
+        h = max(r1 - r0 for r0, r1, _, _ in boxes)
+        w = max(c1 - c0 for _, _, c0, c1 in boxes)
         # each box at the top left of its slot: row-major order within a box is the
         # order of its pixels in the full mask, and triangles never leave a box
         keep = torch.zeros((len(part), h, w), dtype=torch.bool, device=part[0].mask.device)
-        for j, (fk, (c0, c1, r0, r1)) in enumerate(zip(part, boxes)):
-            box = keep[j, :r1 - r0 + 1, :c1 - c0 + 1]
-            box[fk.mask[r0:r1 + 1, c0:c1 + 1]] = fk.owned
+        for j, (fk, (r0, r1, c0, c1)) in enumerate(zip(part, boxes)):
+            keep[j, :r1 - r0, :c1 - c0][fk.mask[r0:r1, c0:c1]] = fk.owned
         f = grid_faces(keep)  # into this chunk's owned points
         # triangles never join keyframes: the chunk's vertices in no triangle go now
         used = torch.zeros(int(keep.sum()), dtype=torch.bool, device=f.device)

@@ -9,7 +9,7 @@ import torch
 from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import (Frame, FrameBuilder, InputError, crop_to_contact, full_batch,
-                                         contact_bounds, height_and_contact_in)
+                                         contact_bounds, height_and_contact_in, window_around)
 
 from . import presses
 from .surfaces import central_gradients, spherical_cap
@@ -373,6 +373,9 @@ class TestCropToContact:
         want = (int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max()))
         assert contact_bounds(crop) == contact_bounds(fr) == want
         assert contact_bounds(replace(fr, contact=torch.zeros_like(fr.contact))) is None
+        # a window around the bounds, clipped to the image
+        assert window_around((5, 10, 70, 78), 3, (60, 80)) == (slice(2, 14), slice(67, 80))
+        assert window_around((0, 59, 0, 79), 8, (60, 80)) == (slice(0, 60), slice(0, 80))
 
     def test_exceptions(self):
         two = Frame.cat([_touch(), _touch()])

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
+from tactile_slam.geometry.frame import mask_bounds
 from tactile_slam.geometry.morphology import erode
 from tactile_slam.loop.features import (
-    FeatureError, Features, SiftSettings, contact_bbox, curvature_features, curvature_image, image_features,
+    FeatureError, Features, SiftSettings, curvature_features, curvature_image, image_features,
 )
 from tests.registration.surfaces import Surface, frames, textured
 
@@ -75,11 +76,11 @@ def test_curvature_image_mapping():
     assert int(curvature_image(torch.zeros(2, 3, 3), CLIP)[0, 0, 0]) == 127
 
 
-def test_contact_bbox():
+def test_mask_bounds():
     m = torch.zeros(10, 12, dtype=torch.bool)
-    assert contact_bbox(m) is None
+    assert mask_bounds(m) is None
     m[2:5, 3:9] = True
-    assert contact_bbox(m) == (2, 5, 3, 9)
+    assert mask_bounds(m) == (2, 5, 3, 9)
 
 
 def test_image_features_within_contact(textured_frame):
