@@ -215,6 +215,9 @@ def height_and_contact_in(part: Frame | CroppedFrame, rows: slice, cols: slice) 
     """
     if len(part) != 1:
         raise InputError(f"a window is read from one frame (B = 1), got B = {len(part)}")
+    for s, n, name in ((rows, part.shape[0], "rows"), (cols, part.shape[1], "columns")):
+        if s.start is None or s.stop is None or s.step not in (None, 1) or not 0 <= s.start < s.stop <= n:
+            raise InputError(f"window {name} {s} must be a non-empty slice within 0..{n}")
     if isinstance(part, Frame):
         return part.height[0, rows, cols], part.contact[0, rows, cols]
     box = part.box

@@ -55,7 +55,9 @@ _KEY_BITS = 21  # per axis: voxel indices in [-2^20, 2^20)
 def voxel_keys(points: torch.Tensor, voxel: float) -> torch.Tensor:
     """One int64 key per cubic voxel (side ``voxel``, grid anchored at the origin) of
     ``(N, 3)`` points, ordered as the voxel indices ``(i, j, k)`` lexicographically.
-    ``(N,)``; raises :class:`ReconError` beyond 2^20 voxels from the origin."""
+    ``(N,)``; raises :class:`ReconError` for NaN or Inf and beyond 2^20 voxels from the origin."""
+    if not bool(torch.isfinite(points).all()):
+        raise ReconError("points to bin into voxels contain NaN or Inf")
     key = torch.floor(points / voxel).long()
     half = 1 << (_KEY_BITS - 1)
     if key.numel() and int(key.abs().max()) >= half:
@@ -70,13 +72,16 @@ def voxel_sums(parts: Iterable[tuple[torch.Tensor, torch.Tensor]], voxel: float,
     parts of ``(N, 3)`` points with their ``(N, C)`` values: ``(M, C)`` sums, in the
     order of :func:`voxel_keys`. Each part is summed ``chunk`` points at a time, then
     the partial sums per voxel: fused points come keyframe by keyframe, so a chunk
-    covers few voxels and no sort or copy runs over all the points."""
+    covers few voxels and no sort or copy runs over all the points. No points at all
+    raise :class:`ReconError`."""
     keys, sums = [], []
     for points, values in parts:
         for a in range(0, points.shape[0], chunk):
             uniq, inv = torch.unique(voxel_keys(points[a:a + chunk], voxel), return_inverse=True)
             keys.append(uniq)
             sums.append(values.new_zeros(uniq.shape[0], values.shape[1]).index_add_(0, inv, values[a:a + chunk]))
+    if not sums:
+        raise ReconError("no points to bin into voxels")
     if len(sums) == 1:
         return sums[0]
     uniq, inv = torch.unique(torch.cat(keys), return_inverse=True)

@@ -369,6 +369,13 @@ class TestCropToContact:
             assert torch.equal(h_full, fr.height[0, rows, cols]) and torch.equal(c_full, fr.contact[0, rows, cols])
         with pytest.raises(InputError, match="B = 1"):
             height_and_contact_in(Frame.cat([fr, fr]), slice(0, 2), slice(0, 2))
+        with pytest.raises(InputError, match="B = 1"):
+            contact_bounds(Frame.cat([fr, fr]))
+        for rows, cols in ((slice(50, 61), slice(0, 10)), (slice(5, 5), slice(0, 10)), (slice(0, 10), slice(-2, 3)),
+                           (slice(None), slice(0, 10))):
+            for part in (crop, fr):
+                with pytest.raises(InputError, match="window"):
+                    height_and_contact_in(part, rows, cols)
         rows, cols = fr.contact[0].nonzero(as_tuple=True)
         want = (int(rows.min()), int(rows.max()), int(cols.min()), int(cols.max()))
         assert contact_bounds(crop) == contact_bounds(fr) == want

@@ -85,6 +85,12 @@ def test_voxel_keys_order_and_range():
     np.testing.assert_array_equal(idx[order], idx[np.lexsort(idx.T[::-1])])
     with pytest.raises(ReconError, match="voxels"):
         voxel_keys(torch.tensor([[0.0, 0.0, 2.0**20 * 0.5]], dtype=torch.float64), 0.5)
+    with pytest.raises(ReconError, match="NaN"):
+        voxel_keys(torch.tensor([[0.0, float("nan"), 0.0]]), 0.5)
+    with pytest.raises(ReconError, match="no points"):
+        voxel_average([torch.zeros(0, 3)], [torch.zeros(0, 3)], 0.5)
+    with pytest.raises(ReconError, match="no points"):
+        voxel_average([], [], 0.5)
 
 
 def test_poisson_depth_clamps():
