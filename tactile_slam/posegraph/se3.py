@@ -191,50 +191,54 @@ def _so3_left_jacobian_inv_coeff(phi: torch.Tensor) -> torch.Tensor:
     return torch.where(small, 1.0 / 12.0 + theta2 / 720.0, big)
 
 
-def _so3_left_jacobian_inv(phi: torch.Tensor) -> torch.Tensor:
-    K = skew(phi)
-    c = _so3_left_jacobian_inv_coeff(phi)[..., None]
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
-    return eye - 0.5 * K + c * (K @ K)
-
-
 def _so3_left_jacobian_inv_apply(phi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """``Jl^-1(phi) v`` by cross products (no 3x3 matrices). ``(..., 3)`` x2 -> ``(..., 3)``."""
     pv = torch.linalg.cross(phi, v)
     return v - 0.5 * pv + _so3_left_jacobian_inv_coeff(phi) * torch.linalg.cross(phi, pv)
 
 
-def _se3_q(rho: torch.Tensor, phi: torch.Tensor) -> torch.Tensor:
-    """The 3x3 coupling block Q(rho, phi) of the SE(3) left Jacobian (Barfoot, eq. 7.86)."""
-    P, R = skew(phi), skew(rho)
-    theta2 = (phi * phi).sum(-1)[..., None, None]
+def _jacobian_inv_coeffs(theta2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``alpha``, ``beta`` in ``Jr^-1(xi) = I + ad/2 + alpha ad^2 + beta ad^4`` from ``theta^2 = |phi|^2``.
+
+    ``Jr^-1(xi) = f(-ad(xi))`` with ``f(x) = x / (e^x - 1)``. The eigenvalues of ``ad`` are 0
+    and ``+-i theta``, each at most a double root of its minimal polynomial, so ``f(-ad)`` equals
+    the polynomial that matches ``f`` and ``f'`` there (Hermite interpolation): with
+    ``h = theta/2``, ``B = 1 - h cot h`` and ``A = 1/(8 sin^2 h) - cot(h)/(4 theta)``,
+    ``alpha = 2B/theta^2 - A`` and ``beta = (B - A theta^2)/theta^4``. Below ``theta = 0.05``
+    their Taylor series replace them (the closed form for beta cancels there).
+    """
     theta = theta2.sqrt()
-    small = theta < 1e-3
+    small = theta < 0.05
     s = torch.where(small, torch.ones_like(theta), theta)
-    s2, s3, s4, s5 = s * s, s ** 3, s ** 4, s ** 5
-    c1 = torch.where(small, 1 / 6 - theta2 / 120, (s - torch.sin(s)) / s3)
-    c2 = torch.where(small, 1 / 24 - theta2 / 720, (s2 + 2 * torch.cos(s) - 2) / (2 * s4))
-    c3 = torch.where(small, 1 / 120 - theta2 / 2520, (2 * s - 3 * torch.sin(s) + s * torch.cos(s)) / (2 * s5))
-    PR, RP, PP = P @ R, R @ P, P @ P
-    PRP = PR @ P
-    return (0.5 * R + c1 * (PR + RP + PRP) + c2 * (PP @ R + RP @ P - 3 * PRP)
-            + c3 * (PRP @ P + PP @ R @ P))
+    h = s / 2
+    sin_h = torch.sin(h)
+    cot_h = torch.cos(h) / sin_h
+    A = 1 / (8 * sin_h * sin_h) - cot_h / (4 * s)
+    B = 1 - h * cot_h
+    s2 = s * s
+    theta4 = theta2 * theta2
+    alpha = torch.where(small, 1 / 12 - theta4 / 30240, 2 * B / s2 - A)
+    beta = torch.where(small, -1 / 720 - theta2 / 15120 - theta4 / 403200, (B - A * s2) / (s2 * s2))
+    return alpha, beta
 
 
 def right_jacobian_inv(xi: torch.Tensor) -> torch.Tensor:
     """Inverse right Jacobians ``(..., 6, 6)`` of se3 vectors ``(..., 6)`` = [rho, phi].
 
-    ``Log(Exp(xi) . Exp(d)) = xi + Jr^-1(xi) d + O(|d|^2)``; ``Jr^-1(xi) = Jl^-1(-xi)``.
+    ``Log(Exp(xi) . Exp(d)) = xi + Jr^-1(xi) d + O(|d|^2)``. In closed form as a quartic in
+    ``ad(xi) = [[phi^, rho^], [0, phi^]]`` (:func:`_jacobian_inv_coeffs`): two 6x6 products,
+    fewer tensor ops on small batches than the 3x3 block formula with Barfoot's Q.
     """
     xi = torch.as_tensor(xi)
-    rho, phi = -xi[..., :3], -xi[..., 3:]
-    Jinv = _so3_left_jacobian_inv(phi)
-    Q = _se3_q(rho, phi)
-    out = torch.zeros(xi.shape[:-1] + (6, 6), dtype=xi.dtype, device=xi.device)
-    out[..., :3, :3] = Jinv
-    out[..., 3:, 3:] = Jinv
-    out[..., :3, 3:] = -Jinv @ Q @ Jinv
-    return out
+    rho, phi = xi[..., :3], xi[..., 3:]
+    P = skew(phi)
+    ad = torch.zeros(xi.shape[:-1] + (6, 6), dtype=xi.dtype, device=xi.device)
+    ad[..., :3, :3] = P
+    ad[..., 3:, 3:] = P
+    ad[..., :3, 3:] = skew(rho)
+    ad2 = ad @ ad
+    alpha, beta = _jacobian_inv_coeffs((phi * phi).sum(-1)[..., None, None])
+    return torch.eye(6, dtype=xi.dtype, device=xi.device) + 0.5 * ad + alpha * ad2 + beta * (ad2 @ ad2)
 
 
 def between_error(Z: torch.Tensor, Ti: torch.Tensor, Tj: torch.Tensor) -> torch.Tensor:

@@ -125,12 +125,17 @@ class _Problem:
         self.n_blocks = keys.numel()
         self.slot_diag = inv[:n]
         m = int(both.sum())
-        self.slot_ij_both, self.slot_ji_both = inv[n:n + m], inv[n + m:]
-        self.both = both
-        # what every linearisation scatters into: rows of the variable ends, their diagonal slots
-        self.vi, self.vj = self.li >= 0, self.lj >= 0
-        self.gi, self.gj = self.li[self.vi], self.lj[self.vj]
-        self.slot_i, self.slot_j = self.slot_diag[self.gi], self.slot_diag[self.gj]
+        # where each edge's four 6x6 blocks (ii, ij, ji, jj) and two gradient rows (i, j) go in
+        # every linearisation; a block or row with a fixed end goes to a spare slot / row
+        E = self.li.numel()
+        spare = torch.full((E,), self.n_blocks, dtype=torch.int64)
+        ij, ji = spare.clone(), spare.clone()
+        ij[both], ji[both] = inv[n:n + m], inv[n + m:]
+        ii = torch.where(self.li >= 0, self.slot_diag[self.li.clamp(min=0)], spare)
+        jj = torch.where(self.lj >= 0, self.slot_diag[self.lj.clamp(min=0)], spare)
+        self.edge_slots = torch.stack([ii, ij, ji, jj], 1).reshape(-1)
+        self.edge_rows = torch.stack([torch.where(self.li >= 0, self.li, n), torch.where(self.lj >= 0, self.lj, n)],
+                                     1).reshape(-1)
         self.slot_p = self.slot_diag[self.plocal]
         self._keys, self._coords = keys, coords
         self._chol: BlockCholesky | None = None
@@ -147,6 +152,8 @@ class _Problem:
     def residuals(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Squared whitened norms of the edges ``(E',)`` and priors ``(P',)`` at poses ``X`` ``(N, 4, 4)``."""
         e = se3.between_error(self.Z, X[self.ei], X[self.ej]) / self.sigma
+        if not self.prow.numel():
+            return (e * e).sum(-1), e.new_zeros(0)
         p = se3.log(se3.inverse(self.pZ) @ X[self.prow]) / self.psigma
         return (e * e).sum(-1), (p * p).sum(-1)
 
@@ -156,27 +163,23 @@ class _Problem:
         ``w`` ``(E',)`` are per-edge weights (IRLS or GNC); priors have weight 1.
         """
         e, Ji, Jj = se3.between_jacobians(self.Z, X[self.ei], X[self.ej])
-        s = self.sigma[:, :, None]
-        e, Ji, Jj = e / self.sigma, Ji / s, Jj / s
-        sw = w.sqrt()[:, None]
-        e, Ji, Jj = e * sw, Ji * sw[..., None], Jj * sw[..., None]
-        ep, Jp = se3.prior_jacobian(self.pZ, X[self.prow])
-        ep, Jp = ep / self.psigma, Jp / self.psigma[:, :, None]
-
-        blocks = torch.zeros(self.n_blocks, 6, 6, dtype=torch.float64)
-        g = torch.zeros(self.n, 6, dtype=torch.float64)
-        vi, vj = self.vi, self.vj
-        JiT, JjT = Ji.transpose(1, 2), Jj.transpose(1, 2)
-        blocks.index_add_(0, self.slot_i, JiT[vi] @ Ji[vi])
-        blocks.index_add_(0, self.slot_j, JjT[vj] @ Jj[vj])
-        Hij = JiT[self.both] @ Jj[self.both]
-        blocks.index_add_(0, self.slot_ij_both, Hij)
-        blocks.index_add_(0, self.slot_ji_both, Hij.transpose(1, 2))
-        blocks.index_add_(0, self.slot_p, Jp.transpose(1, 2) @ Jp)
-        g.index_add_(0, self.gi, (JiT[vi] @ e[vi, :, None]).squeeze(-1))
-        g.index_add_(0, self.gj, (JjT[vj] @ e[vj, :, None]).squeeze(-1))
-        g.index_add_(0, self.plocal, (Jp.transpose(1, 2) @ ep[:, :, None]).squeeze(-1))
-        return blocks.numpy(), g.numpy().reshape(-1)
+        f = w.sqrt()[:, None] / self.sigma  # (E', 6): whitening and weight of each error row
+        e = e * f
+        J = torch.cat([Ji, Jj], dim=2) * f[:, :, None]  # (E', 6, 12)
+        JT = J.transpose(1, 2)
+        m = e.shape[0]
+        H = (JT @ J).reshape(m, 2, 6, 2, 6).transpose(2, 3).reshape(4 * m, 6, 6)  # ii, ij, ji, jj
+        blocks = torch.zeros(self.n_blocks + 1, 6, 6, dtype=torch.float64)  # + the spare slot
+        blocks.index_add_(0, self.edge_slots, H)
+        g = torch.zeros(self.n + 1, 6, dtype=torch.float64)  # + the spare row
+        g.index_add_(0, self.edge_rows, (JT @ e[:, :, None]).reshape(2 * m, 6))
+        if self.prow.numel():
+            ep, Jp = se3.prior_jacobian(self.pZ, X[self.prow])
+            ep, Jp = ep / self.psigma, Jp / self.psigma[:, :, None]
+            JpT = Jp.transpose(1, 2)
+            blocks.index_add_(0, self.slot_p, JpT @ Jp)
+            g.index_add_(0, self.plocal, (JpT @ ep[:, :, None]).squeeze(-1))
+        return blocks[:-1].numpy(), g[:-1].numpy().reshape(-1)
 
     def step(self, blocks: np.ndarray, g: np.ndarray, lam: float) -> torch.Tensor | None:
         """Solve ``(H + lam I) delta = -g``; ``delta`` ``(n, 6)``, or None if not positive definite."""

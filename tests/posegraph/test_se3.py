@@ -90,6 +90,27 @@ class TestJacobians:
             num[:, :, k] = (se3.log(se3.exp(xi) @ se3.exp(d)) - se3.log(se3.exp(xi) @ se3.exp(-d))) / (2 * eps)
         assert torch.allclose(J, num, atol=1e-7)
 
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    @pytest.mark.parametrize("theta", [0.0, 1e-6, 1e-3, 0.0499, 0.0501, 0.5, 2.0, 3.1])
+    def test_right_jacobian_inv_series_oracle(self, theta, dtype):
+        """Against the inverse of ``Jr = sum_n (-ad)^n / (n+1)!`` (60 terms, float64), on both
+        sides of the small-angle switch and up to nearly pi."""
+        gen = torch.Generator().manual_seed(5)
+        axis = torch.randn(8, 3, generator=gen, dtype=torch.float64)
+        xi = torch.cat([torch.randn(8, 3, generator=gen, dtype=torch.float64) * 0.02,
+                        axis / axis.norm(dim=-1, keepdim=True) * theta], -1)
+        ad = torch.zeros(8, 6, 6, dtype=torch.float64)
+        ad[:, :3, :3] = ad[:, 3:, 3:] = se3.skew(xi[:, 3:])
+        ad[:, :3, 3:] = se3.skew(xi[:, :3])
+        term, Jr = torch.eye(6, dtype=torch.float64).expand(8, 6, 6), torch.zeros(8, 6, 6, dtype=torch.float64)
+        for n in range(60):
+            Jr = Jr + term
+            term = term @ (-ad) / (n + 2)
+        J = se3.right_jacobian_inv(xi.to(dtype))
+        assert J.dtype == dtype and J.shape == (8, 6, 6)
+        tol = 1e-12 if dtype == torch.float64 else 1e-5
+        assert torch.allclose(J.double(), torch.linalg.inv(Jr), atol=tol, rtol=0)
+
     def test_between_jacobians_finite_difference(self):
         gen = torch.Generator().manual_seed(3)
         Z, Ti, Tj = (se3.exp(torch.randn(4, 6, generator=gen, dtype=torch.float64)) for _ in range(3))
