@@ -249,14 +249,16 @@ def between_error(Z: torch.Tensor, Ti: torch.Tensor, Tj: torch.Tensor) -> torch.
     return log(inverse(Ti @ Z) @ Tj)
 
 
-def between_jacobians(Z: torch.Tensor, Ti: torch.Tensor, Tj: torch.Tensor
+def between_jacobians(Z: torch.Tensor, Ti: torch.Tensor, Tj: torch.Tensor, e: torch.Tensor | None = None
                       ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Errors ``(E, 6)`` and their Jacobians ``(E, 6, 6)`` w.r.t. right perturbations of Ti, Tj.
 
     With ``e = Log(Z^-1 Ti^-1 Tj)``: ``de/d(delta_j) = Jr^-1(e)`` and
-    ``de/d(delta_i) = -Jr^-1(e) . Ad(Tj^-1 Ti)``.
+    ``de/d(delta_i) = -Jr^-1(e) . Ad(Tj^-1 Ti)``. ``e``: the errors, if already computed
+    (:func:`between_error` of the same arguments).
     """
-    e = between_error(Z, Ti, Tj)
+    if e is None:
+        e = between_error(Z, Ti, Tj)
     Jr_inv = right_jacobian_inv(e)
     Ji = -Jr_inv @ adjoint(inverse(Tj) @ Ti)
     return e, Ji, Jr_inv

@@ -149,20 +149,24 @@ class _Problem:
         return self._chol
 
     # -------------------------------------------------------------- evaluation
-    def residuals(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Squared whitened norms of the edges ``(E',)`` and priors ``(P',)`` at poses ``X`` ``(N, 4, 4)``."""
-        e = se3.between_error(self.Z, X[self.ei], X[self.ej]) / self.sigma
+    def residuals(self, X: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Squared whitened norms of the edges ``(E',)`` and priors ``(P',)`` at poses ``X``
+        ``(N, 4, 4)``, and the edges' errors ``(E', 6)`` (for :meth:`linearize` at the same ``X``)."""
+        err = se3.between_error(self.Z, X[self.ei], X[self.ej])
+        e = err / self.sigma
         if not self.prow.numel():
-            return (e * e).sum(-1), e.new_zeros(0)
+            return (e * e).sum(-1), e.new_zeros(0), err
         p = se3.log(se3.inverse(self.pZ) @ X[self.prow]) / self.psigma
-        return (e * e).sum(-1), (p * p).sum(-1)
+        return (e * e).sum(-1), (p * p).sum(-1), err
 
-    def linearize(self, X: torch.Tensor, w: torch.Tensor) -> tuple[np.ndarray, np.ndarray]:
+    def linearize(self, X: torch.Tensor, w: torch.Tensor, err: torch.Tensor | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
         """Blocks ``(S, 6, 6)`` of ``J^T W J`` and the gradient ``J^T W e`` ``(6n,)`` at ``X``.
 
-        ``w`` ``(E',)`` are per-edge weights (IRLS or GNC); priors have weight 1.
+        ``w`` ``(E',)`` are per-edge weights (IRLS or GNC); priors have weight 1. ``err``: the
+        edges' errors at ``X`` if already known (:meth:`residuals`).
         """
-        e, Ji, Jj = se3.between_jacobians(self.Z, X[self.ei], X[self.ej])
+        e, Ji, Jj = se3.between_jacobians(self.Z, X[self.ei], X[self.ej], err)
         f = w.sqrt()[:, None] / self.sigma  # (E', 6): whitening and weight of each error row
         e = e * f
         J = torch.cat([Ji, Jj], dim=2) * f[:, :, None]  # (E', 6, 12)
@@ -198,14 +202,15 @@ class _Problem:
 
 
 def _weights_and_cost(prob: _Problem, X: torch.Tensor, kernel: str, k2: float,
-                      fixed_w: torch.Tensor | None) -> tuple[torch.Tensor, float]:
-    """Per-edge weights ``(E',)`` for linearisation and the total cost at ``X``."""
-    s_e, s_p = prob.residuals(X)
+                      fixed_w: torch.Tensor | None) -> tuple[torch.Tensor, float, torch.Tensor]:
+    """Per-edge weights ``(E',)`` for linearisation, the total cost at ``X`` and the edges'
+    errors ``(E', 6)`` there."""
+    s_e, s_p, err = prob.residuals(X)
     if fixed_w is not None:
-        return fixed_w, 0.5 * float((fixed_w * s_e).sum() + s_p.sum())
+        return fixed_w, 0.5 * float((fixed_w * s_e).sum() + s_p.sum()), err
     rho = torch.where(prob.loop, robust.kernel_cost(kernel, s_e, k2), s_e)
     w = torch.where(prob.loop, robust.kernel_weight(kernel, s_e, k2), torch.ones_like(s_e))
-    return w, 0.5 * float(rho.sum() + s_p.sum())
+    return w, 0.5 * float(rho.sum() + s_p.sum()), err
 
 
 def _levenberg_marquardt(prob: _Problem, X: torch.Tensor, config: PoseGraphConfig, kernel: str,
@@ -213,18 +218,18 @@ def _levenberg_marquardt(prob: _Problem, X: torch.Tensor, config: PoseGraphConfi
                          ) -> tuple[torch.Tensor, int, float, float, bool]:
     """GTSAM-style LM; returns (poses, accepted steps, initial cost, final cost, converged)."""
     k2 = config.robust_chi2
-    w, cost = _weights_and_cost(prob, X, kernel, k2, fixed_w)
+    w, cost, err = _weights_and_cost(prob, X, kernel, k2, fixed_w)
     cost0 = cost
     lam = config.lambda_init
     it = 0
     converged = cost <= 0.0
     while it < max_iters and not converged:
-        data, g = prob.linearize(X, w)
+        data, g = prob.linearize(X, w, err)
         while True:
             delta = prob.step(data, g, lam)
             if delta is not None:
                 X_new = prob.retract(X, delta)
-                w_new, cost_new = _weights_and_cost(prob, X_new, kernel, k2, fixed_w)
+                w_new, cost_new, err_new = _weights_and_cost(prob, X_new, kernel, k2, fixed_w)
                 if np.isfinite(cost_new) and cost_new <= cost:
                     break
             lam *= config.lambda_factor
@@ -232,7 +237,7 @@ def _levenberg_marquardt(prob: _Problem, X: torch.Tensor, config: PoseGraphConfi
                 return X, it, cost0, cost, False
         it += 1
         decrease = cost - cost_new
-        X, w, cost = X_new, w_new, cost_new
+        X, w, cost, err = X_new, w_new, cost_new, err_new
         lam = max(lam / config.lambda_factor, 1e-300)
         converged = decrease <= config.abs_tol or decrease <= config.rel_tol * (cost + decrease) or cost <= 0
     return X, it, cost0, cost, converged
@@ -295,7 +300,7 @@ def _solve(graph: PoseGraph, config: PoseGraphConfig | None, rows: torch.Tensor 
         X, w, its, c0, c1, conv = _gnc(prob, X, config, max_iters)
     else:
         X, its, c0, c1, conv = _levenberg_marquardt(prob, X, config, config.robust, None, max_iters)
-        w, _ = _weights_and_cost(prob, X, config.robust, config.robust_chi2, None)
+        w, _, _ = _weights_and_cost(prob, X, config.robust, config.robust_chi2, None)
     graph.set_poses(prob.var_rows, X[prob.var_rows])
     report.iterations, report.cost_initial, report.cost_final, report.converged = its, c0, c1, conv
     report.loop_weights[prob.edge_idx] = w
@@ -313,14 +318,14 @@ def _gnc(prob: _Problem, X: torch.Tensor, config: PoseGraphConfig, max_iters: in
     """
     c2 = config.robust_chi2
     X, its, c0, _, conv = _levenberg_marquardt(prob, X, config, "none", None, max_iters)
-    s_e, _ = prob.residuals(X)
+    s_e, _, _ = prob.residuals(X)
     mu = robust.gnc_initial_mu(s_e[prob.loop], c2)
     w = torch.ones_like(s_e)
     for _ in range(config.gnc_max_iters):
         w = torch.where(prob.loop, robust.gnc_tls_weights(s_e, mu, c2), torch.ones_like(s_e))
         X, k, _, _, conv = _levenberg_marquardt(prob, X, config, "none", w, max_iters)
         its += k
-        s_e, _ = prob.residuals(X)
+        s_e, _, _ = prob.residuals(X)
         lw = w[prob.loop]
         if mu == float("inf") or bool(((lw < 1e-3) | (lw > 1 - 1e-3)).all()):
             break

@@ -116,6 +116,7 @@ class TestJacobians:
         Z, Ti, Tj = (se3.exp(torch.randn(4, 6, generator=gen, dtype=torch.float64)) for _ in range(3))
         e, Ji, Jj = se3.between_jacobians(Z, Ti, Tj)
         assert torch.allclose(e, se3.between_error(Z, Ti, Tj))
+        assert all(torch.equal(x, y) for x, y in zip(se3.between_jacobians(Z, Ti, Tj, e), (e, Ji, Jj)))
         eps = 1e-6
         for J, which in ((Ji, 0), (Jj, 1)):
             num = torch.zeros_like(J)
