@@ -20,9 +20,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass, field
 
-import numpy as np
-import scipy.sparse as sp
-import scipy.sparse.csgraph as csgraph
 import torch
 
 from tactile_slam.config import PoseGraphConfig
@@ -67,6 +64,7 @@ class IncrementalSolver:
         self._nodes_seen = 0
         self._edges_seen = 0
         self._priors_seen: set[int] = set()
+        self._adjacency: list[list[int]] = []  # neighbours of each graph row, extended as edges arrive
 
     def update(self) -> UpdateReport:
         """Bring the estimate up to date with the factors added since the last call."""
@@ -85,6 +83,10 @@ class IncrementalSolver:
         removed_priors = sorted(self._priors_seen - prior_rows)
         seeds = torch.cat([e.i[new_edges], e.j[new_edges], torch.arange(self._nodes_seen, g.num_nodes),
                            torch.tensor(added_priors + removed_priors, dtype=torch.int64)]).unique()
+        self._adjacency.extend([] for _ in range(g.num_nodes - len(self._adjacency)))
+        for i, j in zip(e.i[new_edges].tolist(), e.j[new_edges].tolist()):
+            self._adjacency[i].append(j)
+            self._adjacency[j].append(i)
         self._nodes_seen, self._edges_seen, self._priors_seen = g.num_nodes, g.num_edges, prior_rows
         if seeds.numel() == 0:
             report.time_s = time.perf_counter() - t0
@@ -96,21 +98,15 @@ class IncrementalSolver:
             return report
         report.skipped = False
 
-        dist = _hops_from(g, seeds)
-        reachable = np.isfinite(dist)
-        levels = np.sort(dist[reachable])
+        levels = _HopLevels(self._adjacency, seeds.tolist())
         size = cfg.incremental_window
         while True:
-            radius = levels[min(size, levels.size) - 1]
-            rows = torch.from_numpy(np.nonzero(dist <= radius)[0])
+            rows, boundary = levels.region(size)
             rep = solve(g, cfg, rows=rows, max_iters=cfg.incremental_max_iters)
             report.regions.append(rows.numel())
             report.iterations += rep.iterations
-            if rows.numel() == levels.size:
-                break
-            boundary = torch.from_numpy(np.nonzero(dist == radius + 1)[0])
             if boundary.numel() == 0 or _boundary_decrease(g, boundary) <= cfg.incremental_tol:
-                break
+                break  # no pose left outside the region, or none that would still move
             size = 4 * rows.numel()
         report.time_s = time.perf_counter() - t0
         return report
@@ -135,12 +131,40 @@ def _new_factor_cost(g: PoseGraph, new_edges: torch.Tensor, new_prior_rows: torc
     return cost
 
 
-def _hops_from(g: PoseGraph, seeds: torch.Tensor) -> np.ndarray:
-    """``(N,)`` graph distance in hops from the nearest seed (``inf`` if unreachable)."""
-    e = g.edges
-    n = g.num_nodes
-    adj = sp.coo_matrix((np.ones(e.i.numel()), (e.i.numpy(), e.j.numpy())), shape=(n, n)).tocsr()
-    return csgraph.dijkstra(adj, directed=False, indices=seeds.numpy(), unweighted=True, min_only=True)
+class _HopLevels:
+    """Graph rows by hop distance from seed rows (breadth-first), expanded only as far as asked.
+
+    ``adjacency[r]`` lists the neighbours of row ``r``. A region of the default window reads
+    a hundred-odd rows, so this beats a shortest-path pass over the whole graph per update.
+    """
+
+    def __init__(self, adjacency: list[list[int]], seeds: list[int]) -> None:
+        self.adjacency = adjacency
+        self.levels = [sorted(set(seeds))]
+        self.seen = set(self.levels[0])
+
+    def _grow(self) -> bool:
+        """Add the next level; False when nothing is left to reach."""
+        nxt = {v for u in self.levels[-1] for v in self.adjacency[u]} - self.seen
+        if not nxt:
+            return False
+        self.seen |= nxt
+        self.levels.append(sorted(nxt))
+        return True
+
+    def region(self, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """Rows within the smallest radius that holds at least ``size`` rows (every reachable
+        row if fewer), and the rows one hop beyond it (empty when there are none); both
+        sorted ``(n,)`` int64."""
+        r, count = 0, len(self.levels[0])
+        while count < size and (r + 1 < len(self.levels) or self._grow()):
+            r += 1
+            count += len(self.levels[r])
+        if r + 1 == len(self.levels):
+            self._grow()
+        rows = sorted(v for level in self.levels[:r + 1] for v in level)
+        boundary = self.levels[r + 1] if r + 1 < len(self.levels) else []
+        return torch.tensor(rows, dtype=torch.int64), torch.tensor(boundary, dtype=torch.int64)
 
 
 def _boundary_decrease(g: PoseGraph, boundary: torch.Tensor) -> float:

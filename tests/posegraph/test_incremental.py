@@ -4,12 +4,15 @@ from __future__ import annotations
 
 import copy
 
+import numpy as np
 import pytest
+import scipy.sparse as sp
+import scipy.sparse.csgraph as csgraph
 import torch
 
 from tactile_slam.config import PoseGraphConfig
 from tactile_slam.posegraph.graph import PoseGraph
-from tactile_slam.posegraph.incremental import IncrementalSolver
+from tactile_slam.posegraph.incremental import IncrementalSolver, _HopLevels
 from tactile_slam.posegraph.solver import solve
 from tactile_slam.posegraph.synthetic import add_step, replay_steps, synthetic_scan
 
@@ -63,3 +66,27 @@ def test_removed_prior_triggers_solve():
     g.remove_prior(1)
     rep = inc.update()
     assert not rep.skipped and rep.regions
+
+
+@pytest.mark.parametrize("size", [1, 5, 40, 1000])
+def test_hop_levels_match_shortest_paths(size):
+    """The breadth-first region equals the one read off scipy's hop distances: every row
+    within the smallest radius holding ``size`` rows (all reachable ones if fewer), and the
+    rows one hop beyond; rows in another component are never reached."""
+    gen = np.random.default_rng(4)
+    n = 120
+    a, b = gen.integers(0, 100, 200), gen.integers(0, 100, 200)  # rows 100-119: a separate chain
+    a, b = np.concatenate([a, np.arange(100, 119)]), np.concatenate([b, np.arange(101, 120)])
+    adjacency = [[] for _ in range(n)]
+    for i, j in zip(a.tolist(), b.tolist()):
+        adjacency[i].append(j)
+        adjacency[j].append(i)
+    seeds = [3, 17, 3]
+    dist = csgraph.dijkstra(sp.coo_matrix((np.ones(a.size), (a, b)), shape=(n, n)).tocsr(), directed=False,
+                            indices=sorted(set(seeds)), unweighted=True, min_only=True)
+    levels = np.sort(dist[np.isfinite(dist)])
+    radius = levels[min(size, levels.size) - 1]
+    rows, boundary = _HopLevels(adjacency, seeds).region(size)
+    assert rows.tolist() == np.nonzero(dist <= radius)[0].tolist()
+    assert boundary.tolist() == np.nonzero(dist == radius + 1)[0].tolist()
+    assert (rows < 100).all()
