@@ -66,6 +66,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend-objects", nargs="*", default=["seed", "shell", "lime", "knurled"],
                    help="objects for the back-end (loop gate) accuracy; none: skip")
     p.add_argument("--backend-kinds", nargs="+", default=["scan"])
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch CPU threads (default: torch's choice; the online back end runs loop detection on 1)")
 
 
 # ------------------------------------------------------------------ simulated keyframes
@@ -307,6 +309,8 @@ def backend_comparison(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, o
 def run(args: argparse.Namespace) -> Path:
     config = Config()
     torch.manual_seed(args.seed)
+    if args.threads:
+        torch.set_num_threads(args.threads)
     results: dict = {"settings": {k: v for k, v in vars(args).items() if k not in ("func",)}, "accuracy": {}}
     first = None
     for obj in args.objects:
