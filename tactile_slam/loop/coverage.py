@@ -142,30 +142,28 @@ def transform_points(a_T_b: torch.Tensor, points: torch.Tensor, rows: int = 3) -
     return torch.baddbmm(trans.unsqueeze(1), points, rot.transpose(1, 2))
 
 
-def lookup(buffer: torch.Tensor, slots: torch.Tensor, cr: torch.Tensor, shape: tuple[int, int],
-           bilinear: bool = False) -> torch.Tensor:
-    """Read maps stored as rows of a buffer at projected pixel positions, 0 outside.
-
-    Args:
-        buffer: ``(S, H * W)`` maps, one per row (row-major pixels).
-        slots: ``(P,)`` int64 row of the map to read for each point set.
-        cr: ``(P, N, 2)`` float ``(col, row)`` positions.
-        shape: ``(H, W)``.
-        bilinear: bilinear interpolation (out-of-image neighbours read 0,
-            :func:`lookup_bilinear`) instead of the nearest pixel (ties round half to even).
-
-    Returns:
-        ``(P, N)`` values.
-    """
-    if bilinear:
-        return lookup_bilinear([buffer], slots, cr, shape)[0]
-    return lookup_nearest(buffer, slots, cr[..., 0], cr[..., 1], shape)
+def pixel_coords(x: torch.Tensor, y: torch.Tensor, m_per_px: float, shape: tuple[int, int]
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Orthographic projection of metric sensor-frame ``x``, ``y`` (any shape) to float
+    pixel ``(col, row)`` of an ``(H, W)`` image (method.md 1.2)."""
+    h, w = shape
+    return x / m_per_px + (w - 1) / 2.0, y / m_per_px + (h - 1) / 2.0
 
 
 def lookup_nearest(buffer: torch.Tensor, slots: torch.Tensor, col: torch.Tensor, row: torch.Tensor,
                    shape: tuple[int, int]) -> torch.Tensor:
-    """:func:`lookup` at the nearest pixel (ties round half to even), 0 outside, with the
-    positions as separate ``(P, N)`` column and row tensors."""
+    """Read maps stored as rows of a buffer at the nearest pixel (ties round half to
+    even) of projected positions, 0 outside the image.
+
+    Args:
+        buffer: ``(S, H * W)`` maps, one per row (row-major pixels).
+        slots: ``(P,)`` int64 row of the map to read for each point set.
+        col, row: ``(P, N)`` float pixel positions.
+        shape: ``(H, W)``.
+
+    Returns:
+        ``(P, N)`` values.
+    """
     h, w = shape
     rows = slots.view(-1, 1) * (h * w)
     col = torch.round(col).long()
@@ -176,7 +174,7 @@ def lookup_nearest(buffer: torch.Tensor, slots: torch.Tensor, col: torch.Tensor,
 
 def lookup_bilinear(buffers: Sequence[torch.Tensor], slots: torch.Tensor, cr: torch.Tensor,
                     shape: tuple[int, int]) -> list[torch.Tensor]:
-    """Bilinear reads of several buffers laid out alike (:func:`lookup`) at the same
+    """Bilinear reads of several buffers laid out alike (:func:`lookup_nearest`) at the same
     positions, out-of-image neighbours reading 0; the corners and their weights are
     computed once for all buffers. ``(S, H * W)`` each, ``(P,)``, ``(P, N, 2)`` ->
     one ``(P, N)`` per buffer."""
@@ -282,12 +280,12 @@ class CoverageSet:
     def surface_at(self, kf_id: int, cr: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """What fusion reads of active keyframe ``kf_id`` at ``(N, 2)`` pixel positions
         ``(col, row)``: its height (px) and weight, both bilinear, and its weight at the
-        nearest pixel, each ``(N,)`` (as three :func:`lookup` calls, in one pass). The
+        nearest pixel, each ``(N,)`` (the bilinear reads in one pass). The
         height is kept within 1 px of the contact's bounding box and reads 0 beyond,
         where the bilinear weight is 0."""
         slots = torch.tensor([self._active_node(kf_id).slot], device=self._wbuf.device)
         h, w = lookup_bilinear([self._hbuf, self._wbuf], slots, cr[None], self.shape)
-        return h[0], w[0], lookup(self._wbuf, slots, cr[None], self.shape)[0]
+        return h[0], w[0], lookup_nearest(self._wbuf, slots, cr[None, :, 0], cr[None, :, 1], self.shape)[0]
 
     def _active_node(self, kf_id: int) -> _Node:
         node = self._node(kf_id)
@@ -516,9 +514,7 @@ class CoverageSet:
         image; with the depth gate, 0 where the point is off the map's surface): ``(P, N)``."""
         gate = self.depth_gate_m is not None
         moved = transform_points(a_T_b, points, 3 if gate else 2)  # z only for the depth gate
-        h, w = self.shape
-        col = moved[..., 0] / self.m_per_px + (w - 1) / 2.0
-        row = moved[..., 1] / self.m_per_px + (h - 1) / 2.0
+        col, row = pixel_coords(moved[..., 0], moved[..., 1], self.m_per_px, self.shape)
         weights = lookup_nearest(self._wbuf, slots, col, row, self.shape)
         if gate:
             heights = lookup_nearest(self._hbuf, slots, col, row, self.shape) * self.m_per_px

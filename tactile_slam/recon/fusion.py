@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in, mask_bounds, window_around
-from tactile_slam.loop.coverage import CoverageSet, point_map
+from tactile_slam.loop.coverage import CoverageSet, pixel_coords, point_map
 from tactile_slam.recon.mesh import TriMesh, grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -112,10 +112,9 @@ def project_into_box(n_T_t: torch.Tensor, points: torch.Tensor, box: torch.Tenso
     Returns:
         ``(M,)`` int64 indices of the kept points and their ``(M, 2)`` ``(col, row)`` in n.
     """
-    h, w = shape
     rot = n_T_t[:2, :3].to(points.dtype)
-    col = (points @ rot[0] + float(n_T_t[0, 3])) / m_per_px + (w - 1) / 2.0
-    row = (points @ rot[1] + float(n_T_t[1, 3])) / m_per_px + (h - 1) / 2.0
+    col, row = pixel_coords(points @ rot[0] + float(n_T_t[0, 3]), points @ rot[1] + float(n_T_t[1, 3]), m_per_px,
+                            shape)
     b = box.tolist()
     i = ((col > b[0] - 1) & (col < b[1] + 1) & (row > b[2] - 1) & (row < b[3] + 1)).nonzero()[:, 0]
     return i, torch.stack([col[i], row[i]], dim=1)

@@ -12,7 +12,7 @@ from tests.recon.recon_oracle import sphere_keyframes
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import FrameBuilder, crop_to_contact
 from tactile_slam.recon import ReconError, fuse, merge_surfaces
-from tactile_slam.loop.coverage import lookup
+from tactile_slam.loop.coverage import lookup_bilinear, lookup_nearest
 from tactile_slam.recon.fusion import contact_box, grid_normals, keyframe_contact_box, project_into_box
 from tactile_slam.recon.mesh import grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
@@ -165,12 +165,15 @@ def test_cropped_keyframes_fuse_exactly_as_full_ones():
 
 
 def _read(maps: torch.Tensor, cr: torch.Tensor, bilinear: bool) -> torch.Tensor:
-    """``coverage.lookup`` on one ``(H, W)`` map at ``(N, 2)`` positions -> ``(N,)``."""
-    return lookup(maps.reshape(1, -1), torch.zeros(1, dtype=torch.int64), cr[None], tuple(maps.shape), bilinear)[0]
+    """The coverage map reads on one ``(H, W)`` map at ``(N, 2)`` positions -> ``(N,)``."""
+    buf, slots = maps.reshape(1, -1), torch.zeros(1, dtype=torch.int64)
+    if bilinear:
+        return lookup_bilinear([buf], slots, cr[None], tuple(maps.shape))[0][0]
+    return lookup_nearest(buf, slots, cr[None, :, 0], cr[None, :, 1], tuple(maps.shape))[0]
 
 
 def test_map_reads_match_scipy_interpolation():
-    """The reads fusion uses (``coverage.lookup``): bilinear with zeros outside the image
+    """The reads fusion uses (``coverage.lookup_bilinear`` / ``lookup_nearest``): bilinear with zeros outside the image
     (scipy's grid-constant mode) and the nearest pixel's weight, at positions inside, on
     and beyond the border."""
     from scipy.ndimage import map_coordinates
