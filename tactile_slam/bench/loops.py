@@ -309,7 +309,9 @@ def backend_comparison(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, o
 def run(args: argparse.Namespace) -> Path:
     config = Config()
     torch.manual_seed(args.seed)
-    if args.threads:
+    if args.threads is not None:
+        if args.threads < 1:
+            raise ValueError(f"--threads must be >= 1, got {args.threads}")
         torch.set_num_threads(args.threads)
     results: dict = {"settings": {k: v for k, v in vars(args).items() if k not in ("func",)}, "accuracy": {}}
     first = None
