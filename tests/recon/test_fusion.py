@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
@@ -266,3 +268,12 @@ def test_fused_normals_are_central_differences_of_the_fused_grid():
     expected = grid_normals(grid)[fk.mask]
     assert float(expected[:, 0].abs().max()) > 1e-3  # the fused surface is tilted where the sheets blend
     torch.testing.assert_close(fk.normals, expected, atol=1e-6, rtol=0)
+
+
+def test_keyframe_contact_box_without_contact_is_an_error():
+    cfg = Config()
+    k = sphere_keyframes(cfg, radius_mm=3.0, depth_mm=0.8, n=1)[0][0]
+    flat = replace(k.frame, contact=torch.zeros_like(k.frame.contact))
+    for maps in (flat, crop_to_contact(flat)):
+        with pytest.raises(ReconError, match=f"keyframe {k.id} has no contact"):
+            keyframe_contact_box(Keyframe(k.id, k.session, maps, k.new_session, k.prev_T_kf))
