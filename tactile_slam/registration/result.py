@@ -52,6 +52,11 @@ class RegistrationResult:
             i = slice(i, i + 1) if i != -1 else slice(-1, None)
         return RegistrationResult(**{f.name: getattr(self, f.name)[i] for f in fields(self)})
 
+    def clone(self) -> "RegistrationResult":
+        """A copy as ordinary tensors (also of a result computed under
+        ``torch.inference_mode``, whose tensors cannot be changed in place)."""
+        return RegistrationResult(**{f.name: getattr(self, f.name).clone() for f in fields(self)})
+
     @staticmethod
     def cat(results: list["RegistrationResult"]) -> "RegistrationResult":
         if not results:

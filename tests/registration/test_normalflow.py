@@ -211,6 +211,26 @@ def test_prepared_reference_is_reused(scene, batched):
     _close(register_prepared(prep, tars[8:], init[8:]), batched[8:])
 
 
+def test_results_are_ordinary_tensors_under_any_grad_mode(scene):
+    """The solve runs under inference mode, but what it returns can be changed in place and
+    enter autograd; the result is the same whether the caller has grad enabled, disabled
+    or is in inference mode itself."""
+    ref, tars, _, init = scene
+    res = register(ref, tars[:2], init[:2])
+    for name in ("tar_T_ref", "ccs", "ok", "iterations"):
+        assert not getattr(res, name).is_inference(), name
+    before = res.tar_T_ref.clone()
+    res.tar_T_ref[:, :3, 3] *= 1000.0  # e.g. to millimetres, in place
+    assert torch.equal(res.tar_T_ref[:, :3, 3], before[:, :3, 3] * 1000.0)
+    (res.ccs.clone().requires_grad_() * 2).sum().backward()  # usable in a graph
+    T = normalflow(ref, tars[0], init[0])
+    T[0, 3] = 0.0
+    for mode in (torch.no_grad, torch.inference_mode):
+        with mode():
+            assert torch.equal(register(ref, tars[:2], init[:2]).tar_T_ref, before)
+    assert prepare_reference(ref).points_t.is_inference()  # read-only input of later solves
+
+
 def test_different_contact_sizes_in_one_batch():
     """References with different contact areas (padding) give their single results."""
     truth = rigid(rz_deg=6, tx_mm=0.4)
