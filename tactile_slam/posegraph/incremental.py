@@ -25,7 +25,7 @@ import torch
 from tactile_slam.config import PoseGraphConfig
 from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
-from tactile_slam.posegraph.solver import SolveReport, _Problem, single_threaded_torch, solve
+from tactile_slam.posegraph.solver import SolveReport, _Problem, solve, solver_context
 
 
 @dataclass
@@ -68,7 +68,7 @@ class IncrementalSolver:
 
     def update(self) -> UpdateReport:
         """Bring the estimate up to date with the factors added since the last call."""
-        with single_threaded_torch():
+        with solver_context():
             return self._update()
 
     def _update(self) -> UpdateReport:

@@ -244,17 +244,21 @@ def _levenberg_marquardt(prob: _Problem, X: torch.Tensor, config: PoseGraphConfi
 
 
 @contextmanager
-def single_threaded_torch() -> Iterator[None]:
-    """Run torch intra-op work on one thread inside the block, then restore the setting.
+def solver_context() -> Iterator[None]:
+    """Run torch on one intra-op thread and under ``torch.inference_mode`` inside the block,
+    then restore the thread setting.
 
-    The solver's tensors are small (6x6 blocks, thousands of edges); OpenMP parallel regions
-    only add synchronisation, and on a busy machine a descheduled worker stalls each one:
-    a 60-keyframe incremental replay took 108 s with 2 threads and 3 s with 1 under load.
+    The solver's tensors are small (6x6 blocks, thousands of edges): OpenMP parallel regions
+    only add synchronisation, and on a busy machine a descheduled worker stalls each one (a
+    60-keyframe incremental replay took 108 s with 2 threads and 3 s with 1 under load); and
+    autograd's bookkeeping on each of its many small operations is pure overhead (the solve
+    is not differentiated). Poses written into the graph stay ordinary tensors.
     """
     n = torch.get_num_threads()
     torch.set_num_threads(1)
     try:
-        yield
+        with torch.inference_mode():
+            yield
     finally:
         torch.set_num_threads(n)
 
@@ -273,8 +277,10 @@ def solve(graph: PoseGraph, config: PoseGraphConfig | None = None,
     Raises :class:`SolverError` when a connected group of variables has no prior and no fixed
     neighbour, and :class:`GraphError` for an unknown robust mode.
     """
-    with single_threaded_torch():
-        return _solve(graph, config, rows, max_iters)
+    with solver_context():
+        report = _solve(graph, config, rows, max_iters)
+    report.loop_weights = report.loop_weights.clone()  # an ordinary tensor, like every pose of the graph
+    return report
 
 
 def _solve(graph: PoseGraph, config: PoseGraphConfig | None, rows: torch.Tensor | None,

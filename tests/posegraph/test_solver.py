@@ -75,6 +75,21 @@ class TestStructure:
         assert rep.converged
         assert torch.allclose(g.pose(3), torch.eye(4, dtype=torch.float64), atol=1e-12)
 
+    def test_leaves_ordinary_tensors_and_the_thread_setting(self, scan):
+        """The solve runs on one thread under inference mode; afterwards the caller's thread
+        count is back, and the poses and weights it leaves can be changed in place, so the
+        graph keeps growing and solving outside inference mode."""
+        g = copy.deepcopy(scan.graph)
+        threads = torch.get_num_threads()
+        rep = solve(g)
+        assert torch.get_num_threads() == threads
+        assert not rep.loop_weights.is_inference() and not g.poses().is_inference()
+        rep.loop_weights[0] = 0.5
+        g.add_node(10_000, g.pose(149) @ se3.exp(torch.tensor([0, 0, 0, 1e-4, 0, 0], dtype=torch.float64)))
+        g.add_between(int(g.ids[-2]), 10_000, se3.exp(torch.tensor([0, 0, 0, 1e-4, 0, 0], dtype=torch.float64)))
+        g.set_poses(torch.tensor([0]), g.poses(torch.tensor([0]).tolist()))
+        assert solve(g).converged
+
     def test_empty_graph(self):
         rep = solve(PoseGraph())
         assert rep.n_variables == 0 and rep.iterations == 0
