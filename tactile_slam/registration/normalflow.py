@@ -527,12 +527,7 @@ def register_prepared(
     return res.clone()
 
 
-def _register_prepared(
-    prep: PreparedReference,
-    tar: Frame,
-    init_tar_T_ref: torch.Tensor | None = None,
-    config: NormalFlowConfig | None = None,
-) -> RegistrationResult:
+def _register_prepared(prep: PreparedReference, tar: Frame, init_tar_T_ref, config) -> RegistrationResult:
     """:func:`register_prepared` without the copy out of inference mode."""
     config = config or NormalFlowConfig()
     _check_config(config, prep.shape)
