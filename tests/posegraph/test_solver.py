@@ -111,8 +111,11 @@ class TestStructure:
         g.add_prior(0)
         g.add_between(0, 1, torch.eye(4))
         g.add_between(2, 3, torch.eye(4))
+        threads = torch.get_num_threads()
         with pytest.raises(SolverError, match="no prior"):
             solve(g)
+        # the solver's context is left behind the error too
+        assert torch.get_num_threads() == threads and not torch.is_inference_mode_enabled()
 
     def test_subset_holds_others_fixed(self, scan):
         g = copy.deepcopy(scan.graph)
