@@ -14,7 +14,7 @@ from pathlib import Path
 
 import torch
 
-from tactile_slam.bench.common import time_fn, timing_stats, write_json
+from tactile_slam.bench.common import set_threads, time_fn, timing_stats, write_json
 from tactile_slam.calibration.catalog import load_calibration_set
 from tactile_slam.calibration.dataset import build_dataset
 from tactile_slam.calibration.evaluate import evaluate_model
@@ -42,7 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args) -> Path:
     TrainConfig(epochs=args.epochs, lr_step=args.lr_step, loss=args.loss, restarts=args.restarts).validate()
-    torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     sensor = load_config("gelsight_mini").sensor
     data_dir = Path(args.data)
     calib = load_calibration_set(data_dir / "calibration", sensor.shape)

@@ -37,6 +37,15 @@ def machine_info() -> dict[str, Any]:
     return info
 
 
+def set_threads(threads: int | None) -> None:
+    """Apply a bench's ``--threads``: ``None`` leaves torch's choice, below 1 is an error."""
+    if threads is None:
+        return
+    if threads < 1:
+        raise ValueError(f"--threads must be >= 1, got {threads}")
+    torch.set_num_threads(threads)
+
+
 def median_per_key(dicts: list[dict]) -> dict[str, float]:
     """Per-key median of numeric dicts, over the dicts that hold the key (NaN values
     are skipped too), e.g. the per-stage ``timing_ms`` of several runs."""

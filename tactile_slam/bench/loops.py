@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile_slam.bench.common import rendered_frames, timing_stats, write_json
+from tactile_slam.bench.common import rendered_frames, set_threads, timing_stats, write_json
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import FrameBuilder, crop_to_contact
 from tactile_slam.loop.coverage import CoverageSet
@@ -309,10 +309,7 @@ def backend_comparison(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, o
 def run(args: argparse.Namespace) -> Path:
     config = Config()
     torch.manual_seed(args.seed)
-    if args.threads is not None:
-        if args.threads < 1:
-            raise ValueError(f"--threads must be >= 1, got {args.threads}")
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     results: dict = {"settings": {k: v for k, v in vars(args).items() if k not in ("func",)}, "accuracy": {}}
     first = None
     for obj in args.objects:

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile_slam.bench.common import time_fn, timing_stats, write_json
+from tactile_slam.bench.common import set_threads, time_fn, timing_stats, write_json
 from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import Config, NormalFlowConfig
 from tactile_slam.geometry.frame import Frame, FrameBuilder
@@ -129,8 +129,7 @@ def _timed_nf(refs: list[Frame], tars: list[Frame], configs: dict[str, NormalFlo
 def run(args) -> Path:
     if args.fpfh_pairs < 0 or args.repeats < 1:
         raise ValueError(f"--fpfh-pairs must be >= 0 and --repeats >= 1, got {args.fpfh_pairs}, {args.repeats}")
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     cfg = Config()
     rng = np.random.default_rng(args.seed)
     dev = torch.device(args.device)

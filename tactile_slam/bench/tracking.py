@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile_slam.bench.common import median_per_key, write_json
+from tactile_slam.bench.common import median_per_key, set_threads, write_json
 from tactile_slam.cli.eval import evaluate_run
 from tactile_slam.config import Config
 from tactile_slam.eval.loop_metrics import gt_loop_pairs, loop_precision_recall
@@ -408,8 +408,7 @@ def plot(path: Path, summary: dict) -> None:
 
 
 def run(args) -> Path:
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    set_threads(args.threads)
     config = Config()
     specs = episode_specs(args)
     cache = Path(args.cache)

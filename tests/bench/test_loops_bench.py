@@ -41,11 +41,3 @@ def test_backend_section_scores_gate_and_no_gate(tmp_path):
         assert r["accepted"] >= 1 and 0 < r["query_recall"] <= 1
     gate = res["seed/tracking/gate"]["summary"]["loop_gate"]
     assert gate is not None and res["seed/tracking/no_gate"]["summary"]["loop_gate"] is None
-
-
-def test_bad_threads_is_an_error(tmp_path, capsys):
-    threads = torch.get_num_threads()
-    assert main(["bench", "loops", "--out", str(tmp_path / "x.json"), "--objects", "--sizes", "--index-sizes",
-                 "--backend-objects", "--threads", "0"]) == 2
-    assert "--threads must be >= 1, got 0" in capsys.readouterr().err
-    assert torch.get_num_threads() == threads and not (tmp_path / "x.json").exists()
