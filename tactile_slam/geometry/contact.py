@@ -39,17 +39,19 @@ def colour_mask(
 def percentile(x: torch.Tensor, q: float) -> torch.Tensor:
     """Per-row percentile with linear interpolation (numpy's default).
 
-    ``(B, N)`` -> ``(B,)``; ``q`` in [0, 100]. Two ``kthvalue`` selections instead of
-    a full sort.
+    ``(B, N)`` -> ``(B,)``; ``q`` in [0, 100]. One ``kthvalue`` selection instead of a
+    full sort; the next order statistic is the selected value again where it repeats,
+    else the smallest value above it.
     """
     n = x.shape[1]
     pos = q / 100.0 * (n - 1)
     lo = int(pos)
-    hi = min(lo + 1, n - 1)
     v_lo = torch.kthvalue(x, lo + 1, dim=1).values
-    if hi == lo:
+    if lo + 1 >= n:
         return v_lo
-    v_hi = torch.kthvalue(x, hi + 1, dim=1).values
+    below = x <= v_lo[:, None]
+    above = torch.where(below, torch.inf, x).amin(dim=1)
+    v_hi = torch.where(below.sum(dim=1) >= lo + 2, v_lo, above)
     return v_lo + (pos - lo) * (v_hi - v_lo)
 
 
@@ -70,10 +72,15 @@ def zero_level(height: torch.Tensor, changed: torch.Tensor, min_fraction: float 
     b = height.shape[0]
     flat = height.reshape(b, -1)
     free = ~changed.reshape(b, -1)
-    enough = free.sum(dim=1) >= min_fraction * flat.shape[1]
-    median = torch.where(free, flat, torch.nan).nanmedian(dim=1).values
-    level = torch.where(enough, median, percentile(flat, 85.0))
-    return height - level[:, None, None]
+    counts = free.sum(dim=1).tolist()
+    rest = torch.where(free, flat, torch.inf)  # the lower median of the free pixels comes first
+    level = []
+    for i, m in enumerate(counts):
+        if m >= min_fraction * flat.shape[1]:
+            level.append(torch.kthvalue(rest[i], (m - 1) // 2 + 1).values)
+        else:
+            level.append(percentile(flat[i:i + 1], 85.0)[0])
+    return height - torch.stack(level)[:, None, None]
 
 
 def contact_mask(
