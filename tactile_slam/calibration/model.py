@@ -125,6 +125,10 @@ class GradientDecoder:
         skip_color_dist: colour distance under which a pixel is skipped; ``0``
             evaluates every pixel.
         max_angle: angles are clamped to ``[-max_angle, max_angle]`` rad before tan.
+        chunk_pixels: on the CPU the model runs over at most this many pixels at a time,
+            so that its layer outputs stay in cache (one product over the changed pixels
+            of a batch of full frames is several times slower; ``docs/calibration.md``);
+            ``0`` or another device: all at once. Results do not depend on it beyond rounding.
     """
 
     def __init__(
@@ -133,20 +137,31 @@ class GradientDecoder:
         background: torch.Tensor,
         skip_color_dist: float = 4.0,
         max_angle: float = 1.4,
+        chunk_pixels: int = 16384,
     ):
         if background.ndim != 3 or background.shape[-1] != 3:
             raise ValueError(f"background must be (H, W, 3), got {tuple(background.shape)}")
+        if chunk_pixels < 0:
+            raise ValueError(f"chunk_pixels must be >= 0, got {chunk_pixels}")
         self.model = model
         self.device = next(model.parameters()).device
         self.background = background.to(self.device, torch.float32)
         self.skip_color_dist = float(skip_color_dist)
         self.max_angle = float(max_angle)
+        self.chunk_pixels = int(chunk_pixels) if self.device.type == "cpu" else 0
         with torch.no_grad():
             feats = pixel_features(self.background[None])
             self.bg_slopes = self._slopes(feats.reshape(-1, 5)).reshape(*self.background.shape[:2], 2)
 
     def _slopes(self, feats: torch.Tensor) -> torch.Tensor:
-        return torch.tan(self.model(feats).clamp(-self.max_angle, self.max_angle))
+        """``(N, 5)`` features -> ``(N, 2)`` slopes, ``chunk_pixels`` rows at a time."""
+        step = self.chunk_pixels or len(feats)
+        if len(feats) <= step:
+            return torch.tan(self.model(feats).clamp(-self.max_angle, self.max_angle))
+        out = feats.new_empty(len(feats), 2)
+        for i in range(0, len(feats), step):
+            out[i:i + step] = torch.tan(self.model(feats[i:i + step]).clamp(-self.max_angle, self.max_angle))
+        return out
 
     @torch.no_grad()
     def __call__(self, bgr: torch.Tensor, changed: torch.Tensor | None = None) -> torch.Tensor:

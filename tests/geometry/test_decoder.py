@@ -66,3 +66,28 @@ def test_decoder_bad_shape():
     dec = GradientDecoder(GradientMLP(), torch.zeros(24, 32, 3))
     with pytest.raises(ValueError, match="image batch"):
         dec(torch.zeros(1, 24, 31, 3))
+
+
+@pytest.mark.parametrize("skip", [0.0, 8.0])
+def test_decoder_chunks_give_identical_gradients(skip):
+    """The model runs ``chunk_pixels`` rows at a time on the CPU: chunks smaller than the
+    changed pixels, not dividing them, or one chunk for all give the same gradients (to
+    rounding: a one-row product may take another kernel), and a frame with nothing
+    changed decodes to zero."""
+    torch.manual_seed(1)
+    m = GradientMLP()
+    bg = torch.rand(24, 32, 3) * 255
+    img = bg[None].repeat(3, 1, 1, 1)
+    img[0, 4:20, 3:30] += 60
+    img[1] = torch.rand(24, 32, 3) * 255
+    whole = GradientDecoder(m, bg, skip, chunk_pixels=0)(img)
+    assert whole[0].abs().sum() > 0 and (whole[2] == 0).all()
+    for chunk in (1, 7, 500, 24 * 32 * 3, 10 ** 6):
+        torch.testing.assert_close(GradientDecoder(m, bg, skip, chunk_pixels=chunk)(img), whole, rtol=1e-6,
+                                   atol=1e-6)
+    assert (GradientDecoder(m, bg, skip, chunk_pixels=7)(bg[None]) == 0).all()
+
+
+def test_decoder_bad_chunk():
+    with pytest.raises(ValueError, match="chunk_pixels"):
+        GradientDecoder(GradientMLP(), torch.zeros(24, 32, 3), chunk_pixels=-1)
