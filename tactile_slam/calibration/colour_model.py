@@ -19,6 +19,7 @@ from torch import nn
 from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet
 from tactile_slam.calibration.dataset import sphere_targets
 from tactile_slam.calibration.labels import PressLabel
+from tactile_slam.calibration.model import map_rows
 
 COLOUR_FORMAT_TAG = "tactile-slam-colour-model"
 
@@ -48,9 +49,15 @@ class ColourModel:
     Args:
         hidden: hidden layer sizes of the MLP.
         meta: free metadata stored with the model (sensor, image size, fit error).
+        chunk_pixels: on the CPU the MLP runs over at most this many pixels at a time
+            (:func:`~tactile_slam.calibration.model.map_rows`; 0: all at once).
     """
 
-    def __init__(self, hidden: tuple[int, ...] = (64, 64), meta: dict[str, Any] | None = None):
+    def __init__(self, hidden: tuple[int, ...] = (64, 64), meta: dict[str, Any] | None = None,
+                 chunk_pixels: int = 8192):
+        if chunk_pixels < 0:
+            raise ValueError(f"chunk_pixels must be >= 0, got {chunk_pixels}")
+        self.chunk_pixels = int(chunk_pixels)
         self.hidden = tuple(int(h) for h in hidden)
         self.net = _ColourMLP(self.hidden).eval()
         self.meta = dict(meta or {})
@@ -81,7 +88,8 @@ class ColourModel:
         feats = self.features(gradients.to(self.device))
         if not torch.isfinite(feats).all():
             raise ValueError("gradients contain NaN")
-        return self.net(feats.reshape(-1, 4)).reshape(*feats.shape[:3], 3)
+        rows = self.chunk_pixels if self.device.type == "cpu" else 0
+        return map_rows(self.net, feats.reshape(-1, 4), rows).reshape(*feats.shape[:3], 3)
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)

@@ -49,6 +49,21 @@ class GradientMLP(nn.Module):
         return getattr(self, f"fc{self.n_layers}")(x)
 
 
+def map_rows(fn, x: torch.Tensor, rows: int) -> torch.Tensor:
+    """``fn`` over the rows of ``x`` ``(N, C)``, at most ``rows`` at a time (``0``: all at
+    once) -> ``(N, D)``. For per-pixel networks on the CPU: one product over a whole batch
+    of frames is memory-bound, while a chunk's layer outputs stay in cache."""
+    step = rows or len(x)
+    if len(x) <= step:
+        return fn(x)
+    first = fn(x[:step])
+    out = first.new_empty(len(x), *first.shape[1:])
+    out[:step] = first
+    for i in range(step, len(x), step):
+        out[i:i + step] = fn(x[i:i + step])
+    return out
+
+
 def pixel_features(bgr: torch.Tensor) -> torch.Tensor:
     """Per-pixel model input from raw BGR images.
 
@@ -148,20 +163,15 @@ class GradientDecoder:
         self.background = background.to(self.device, torch.float32)
         self.skip_color_dist = float(skip_color_dist)
         self.max_angle = float(max_angle)
-        self.chunk_pixels = int(chunk_pixels) if self.device.type == "cpu" else 0
+        self.chunk_pixels = int(chunk_pixels)
         with torch.no_grad():
             feats = pixel_features(self.background[None])
             self.bg_slopes = self._slopes(feats.reshape(-1, 5)).reshape(*self.background.shape[:2], 2)
 
     def _slopes(self, feats: torch.Tensor) -> torch.Tensor:
         """``(N, 5)`` features -> ``(N, 2)`` slopes, ``chunk_pixels`` rows at a time."""
-        step = self.chunk_pixels or len(feats)
-        if len(feats) <= step:
-            return torch.tan(self.model(feats).clamp(-self.max_angle, self.max_angle))
-        out = feats.new_empty(len(feats), 2)
-        for i in range(0, len(feats), step):
-            out[i:i + step] = torch.tan(self.model(feats[i:i + step]).clamp(-self.max_angle, self.max_angle))
-        return out
+        rows = self.chunk_pixels if self.device.type == "cpu" else 0
+        return map_rows(lambda x: torch.tan(self.model(x).clamp(-self.max_angle, self.max_angle)), feats, rows)
 
     @torch.no_grad()
     def __call__(self, bgr: torch.Tensor, changed: torch.Tensor | None = None) -> torch.Tensor:

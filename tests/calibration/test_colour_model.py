@@ -18,6 +18,23 @@ def test_shapes_and_device(device, dtype):
     assert out.shape == (2, 6, 7, 3) and out.dtype == torch.float32 and out.device.type == device.type
 
 
+def test_chunks_give_the_same_colours():
+    """The MLP runs ``chunk_pixels`` rows at a time on the CPU: any chunk size, dividing
+    the pixels or not, gives the colours of one pass (to rounding)."""
+    torch.manual_seed(2)
+    model = ColourModel((16, 16))
+    g = torch.randn(3, 10, 13, 2) * 0.3
+    whole = ColourModel((16, 16), chunk_pixels=0)
+    whole.net.load_state_dict(model.net.state_dict())
+    ref = whole(g)
+    assert ref.abs().sum() > 0
+    for chunk in (1, 37, 390, 10 ** 6):
+        model.chunk_pixels = chunk
+        torch.testing.assert_close(model(g), ref, rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="chunk_pixels"):
+        ColourModel((8,), chunk_pixels=-1)
+
+
 def test_bad_input():
     model = ColourModel((8,))
     with pytest.raises(ValueError, match=r"\(B, H, W, 2\)"):
