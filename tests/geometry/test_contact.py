@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from tactile_slam.geometry.contact import percentile, zero_level
+from tactile_slam.geometry.contact import colour_distance, percentile, zero_level
 
 
 def _rows(kind: str, n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -75,3 +75,17 @@ def test_zero_level_median_is_exact_and_differentiable():
     grad = torch.ones_like(h)
     grad[0, 0, 2] -= 8.0  # d/dh of sum(h - h[0, 0, 2])
     assert torch.equal(h.grad, grad)
+
+
+def test_colour_distance_matches_numpy(device):
+    """Euclidean BGR distance of uint8 or float images to a float background (per frame
+    or shared), float32, against numpy in float64."""
+    g = torch.Generator().manual_seed(5)
+    img = torch.randint(0, 256, (2, 6, 7, 3), generator=g, dtype=torch.uint8)
+    bg = torch.rand(6, 7, 3, generator=g) * 255
+    want = np.linalg.norm(img.double().numpy() - bg.double().numpy(), axis=-1)
+    for x, b in ((img, bg), (img.float(), bg), (img, bg.expand(2, 6, 7, 3))):
+        got = colour_distance(x.to(device), b.to(device))
+        assert got.shape == (2, 6, 7) and got.dtype == torch.float32
+        np.testing.assert_allclose(got.cpu().double().numpy(), want, rtol=1e-6, atol=1e-4)
+    assert float(colour_distance(bg[None], bg).abs().max()) == 0.0

@@ -1,3 +1,4 @@
+import numpy as np
 import torch
 
 from tactile_slam.geometry.curvature import curvature, divergence, normals_from_gradients
@@ -11,6 +12,27 @@ def test_normals_unit_and_direction():
     torch.testing.assert_close(torch.linalg.vector_norm(n, dim=-1), torch.ones(1, 1, 1))
     # (-gx, -gy, 1) direction: toward the object (+z)
     assert n[0, 0, 0, 0] < 0 and n[0, 0, 0, 1] > 0 and n[0, 0, 0, 2] > 0
+
+
+def test_normals_match_numpy_over_slopes_and_dtypes(dtype, device):
+    """``(-gx, -gy, 1) / |.|`` against numpy in float64, from flat to near-vertical slopes
+    (|g| up to 1e4: the rsqrt stays finite and the normal lies down), to the dtype's
+    rounding."""
+    g = torch.Generator().manual_seed(0)
+    mag = torch.logspace(-8, 4, 60, dtype=torch.float64)
+    ang = torch.rand(60, generator=g, dtype=torch.float64) * 6.283
+    grads = torch.stack([mag * ang.cos(), mag * ang.sin()], -1).reshape(3, 4, 5, 2)
+    n = normals_from_gradients(grads.to(dtype=dtype, device=device))
+    assert n.shape == (3, 4, 5, 3) and n.dtype == dtype and n.device.type == device.type
+    raw = np.concatenate([-grads.numpy(), np.ones((3, 4, 5, 1))], -1)
+    want = raw / np.linalg.norm(raw, axis=-1, keepdims=True)
+    tol = 1e-14 if dtype == torch.float64 else 3e-7
+    np.testing.assert_allclose(n.cpu().double().numpy(), want, rtol=0, atol=tol)
+
+
+def test_normals_gradcheck():
+    g = (torch.randn(1, 3, 4, 2, dtype=torch.float64) * 2).requires_grad_()
+    assert torch.autograd.gradcheck(normals_from_gradients, (g,))
 
 
 def test_divergence_of_paraboloid_is_constant():
