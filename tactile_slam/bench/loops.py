@@ -45,6 +45,7 @@ from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import LoopDetector
 from tactile_slam.loop.retrieval import DescriptorIndex, IndexSettings
 from tactile_slam.posegraph import se3
+from tactile_slam.registration.normalflow import prepare_reference
 from tactile_slam.registration.result import pose_error
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -114,7 +115,10 @@ def tracked_keyframes(obj: str, kind: str, n_frames: int, seed: int, config: Con
     kfs: list[Keyframe] = []
     for frame in rendered_frames(renderer, FrameBuilder(config), motion.object_T_sensor):
         kfs += tracker.step(frame).keyframes
-    return kfs + tracker.finish(), np.asarray(motion.object_T_sensor)
+    kfs += tracker.finish()
+    for kf in kfs:  # held for the whole scan: no preparations pinned (replays prepare their queries)
+        kf.prepared = None
+    return kfs, np.asarray(motion.object_T_sensor)
 
 
 def true_revisits(kfs: list[Keyframe], obj_T: torch.Tensor, overlap: float, reach_m: float) -> set[tuple[int, int]]:
@@ -257,7 +261,10 @@ def timing_vs_size(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, sizes
             det.add(k)
         samples, loops = [], 0
         for k in kfs[n - queries:n]:
-            q = replace(k, maps=k.frame)  # a new keyframe has its full maps until the back end has it
+            # a new keyframe has its full maps until the back end has it, and the preparation the
+            # tracker made when it became the tracking reference (every keyframe does), not timed here
+            q = replace(k, maps=k.frame)
+            q.prepared = prepare_reference(q.frame, det.nf_config)
             t0 = time.perf_counter()
             det.add(q)
             loops += len(det.detect(q, [r for r in kmap if r < k.id], group, start_T, kmap))

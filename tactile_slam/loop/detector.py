@@ -40,7 +40,12 @@ from tactile_slam.loop.features import Features, SiftSettings, curvature_feature
 from tactile_slam.loop.matching import RansacSettings, match, self_similarity, similarity_to_se3
 from tactile_slam.loop.retrieval import DescriptorIndex, Footprint, IndexSettings, footprints, pose_gate
 from tactile_slam.posegraph import se3
-from tactile_slam.registration.normalflow import prepare_reference, register_prepared
+from tactile_slam.registration.normalflow import (
+    PreparedReference,
+    prepare_reference,
+    reference_settings,
+    register_prepared,
+)
 from tactile_slam.registration.result import RegistrationResult
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -362,7 +367,7 @@ class LoopDetector:
             raise LoopError(f"need B >= 1 references and (B, 4, 4) initial poses, got {len(refs)} and "
                             f"{tuple(init_tar_T_ref.shape)}")
         t0 = time.perf_counter()
-        prep = prepare_reference(_check_keyframe(query), self.nf_config)
+        prep = self._reference(query)
         step = self.config.loop.verify_batch
         out = []
         for a in range(0, len(refs), step):
@@ -373,6 +378,18 @@ class LoopDetector:
         self.stats.verified += len(refs)
         self.stats.time_verification += time.perf_counter() - t0
         return RegistrationResult.cat(out)
+
+    def _reference(self, query: Keyframe) -> PreparedReference:
+        """The query prepared as the reference of its verification: the tracker's
+        preparation when the keyframe still carries one made with the same settings
+        (identical result, one preparation fewer), else a new one."""
+        frame = _check_keyframe(query)
+        prep = query.prepared
+        if (isinstance(prep, PreparedReference) and prep.settings == reference_settings(self.nf_config)
+                and prep.dtype == frame.normals.dtype and prep.device == frame.device and len(prep) == 1
+                and prep.shape == frame.shape):
+            return prep
+        return prepare_reference(frame, self.nf_config)
 
     def _verify_and_accept(self, query: Keyframe, cands: list[int], init: torch.Tensor, inliers: list[int],
                            keyframes: Mapping[int, Keyframe]) -> list[Loop]:

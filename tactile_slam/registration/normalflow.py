@@ -76,6 +76,8 @@ class PreparedReference:
         m_per_px: metres per pixel.
         normals_map: ``(B, H, W, 3)`` the references' normal maps in the working dtype
             (the source of coarse levels built later, :meth:`retry_levels`).
+        settings: :func:`reference_settings` of the configuration it was prepared with
+            (another solve may reuse it when its own settings are equal).
 
     :func:`prepare_reference` builds it under ``torch.inference_mode``: its tensors are
     read-only inputs of later registrations (an in-place change outside inference
@@ -90,6 +92,7 @@ class PreparedReference:
     shape: tuple[int, int]
     m_per_px: float
     normals_map: torch.Tensor
+    settings: tuple = ()
 
     def __len__(self) -> int:
         return self.points_t.shape[0]
@@ -108,7 +111,7 @@ class PreparedReference:
         levels = [Level(lvl.normals_t[i], lvl.jacobian_t[i], lvl.jtj[i], lvl.ata_full[i], lvl.factor)
                   for lvl in self.levels]
         return PreparedReference(self.points_t[i], self.curvature[i], self.spread[i], self.valid[i], levels,
-                                 self.shape, self.m_per_px, self.normals_map[i])
+                                 self.shape, self.m_per_px, self.normals_map[i], self.settings)
 
     def retry_levels(self, ids: np.ndarray | None, factors: tuple[int, ...], jacobian: str) -> "PreparedReference":
         """The references ``ids`` (all if ``None``) with coarse levels ``factors`` in
@@ -117,7 +120,9 @@ class PreparedReference:
         levels = [_coarse_level(sub.normals_map, sub.points, sub.valid, self.m_per_px, f, jacobian)
                   for f in sorted(factors, reverse=True)]
         prep = PreparedReference(sub.points_t, sub.curvature, sub.spread, sub.valid, [*levels, sub.levels[-1]],
-                                 self.shape, self.m_per_px, sub.normals_map)
+                                 self.shape, self.m_per_px, sub.normals_map,
+                                 (*self.settings[:3], jacobian, tuple(sorted(factors, reverse=True))) if self.settings
+                                 else ())
         _check_reference_finite(prep)  # the coarse levels read the normal map around the samples
         return prep
 
@@ -220,6 +225,14 @@ def _coarse_level(normals_map, points, valid, s, factor, jacobian) -> Level:
     return _level(points.mT, normals_t, dn_t, valid, factor, jacobian)
 
 
+def reference_settings(config: NormalFlowConfig) -> tuple:
+    """What :func:`prepare_reference` takes from a configuration: the sample selection
+    (count, rule, seed), the Jacobian and the coarse levels. Two configurations with equal
+    settings prepare a frame identically (the thresholds act later)."""
+    return (config.n_samples, config.selection, config.seed if config.selection == "random" else None,
+            config.jacobian, tuple(sorted(config.coarse_factors, reverse=True)))
+
+
 @torch.inference_mode()
 def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype: torch.dtype | None = None
                       ) -> PreparedReference:
@@ -253,7 +266,7 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     dn_t = sobel_at(normals_map, idx).permute(0, 2, 3, 1) / s  # (B, 3, 2, K)
     levels.append(_level(points.mT, normals.mT, dn_t, valid, 1, config.jacobian))
     prep = PreparedReference(points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s,
-                             normals_map)
+                             normals_map, reference_settings(config))
     _check_reference_finite(prep)
     return prep
 

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import torch
 
@@ -26,6 +27,10 @@ class Keyframe:
             keyframe of the same session (the odometry measurement); identity for a
             session head.
         image: optional ``(H, W, 3)`` uint8 BGR image of the keyframe (GS-ImageSIFT).
+        prepared: the tracker's NormalFlow preparation of these maps as a reference (a
+            :class:`~tactile_slam.registration.normalflow.PreparedReference`), while the
+            keyframe is new: loop verification, which uses the new keyframe as its
+            reference, reuses it instead of preparing it again. :meth:`compact` drops it.
     """
 
     id: int
@@ -34,6 +39,7 @@ class Keyframe:
     new_session: bool
     prev_T_kf: torch.Tensor
     image: torch.Tensor | None = None
+    prepared: Any = field(default=None, repr=False, compare=False)
 
     @property
     def frame(self) -> Frame:
@@ -42,8 +48,10 @@ class Keyframe:
         return self.maps.expand() if isinstance(self.maps, CroppedFrame) else self.maps
 
     def compact(self) -> None:
-        """Keep only the maps around the contact from now on (:func:`crop_to_contact`):
-        what a pipeline does once the back end has taken the keyframe in."""
+        """Keep only the maps around the contact from now on (:func:`crop_to_contact`), and
+        drop the tracker's preparation: what a pipeline does once the back end has taken
+        the keyframe in."""
+        self.prepared = None
         if isinstance(self.maps, Frame):
             self.maps = crop_to_contact(self.maps)
 

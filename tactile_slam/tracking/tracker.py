@@ -198,7 +198,8 @@ class Tracker:
         session = self.next_session - 1
         # a copy without gradients: the frame is usually a view of its geometry batch, which
         # it would keep alive; the pipeline crops it to the contact once the back end has it
-        kf = Keyframe(self.next_keyframe_id, session, own_maps(frame), new_session, prev_T_kf.clone())
+        kf = Keyframe(self.next_keyframe_id, session, own_maps(frame), new_session, prev_T_kf.clone(),
+                      prepared=prepared)
         self.next_keyframe_id += 1
         self.kf = kf
         self.kf_prepared = prepared

@@ -155,6 +155,32 @@ def test_verification_uses_the_query_as_reference(scene):
     rot, trans = pose_error(got.tar_T_ref[both], method.tar_T_ref.double()[both])
     assert float(rot.max()) < 0.05 and float(trans.max()) < 0.005
 
+def test_verification_reuses_the_trackers_preparation(scene, monkeypatch):
+    """A query keyframe that still carries the tracker's preparation (same sample settings,
+    other thresholds) is not prepared again, and verifies exactly as a freshly prepared
+    one; a preparation with other settings (fewer samples) is not reused."""
+    import tactile_slam.loop.detector as detector_module
+    from tactile_slam.registration.normalflow import prepare_reference
+
+    det = _detector(scene)
+    refs, init = [scene[0], scene[1]], torch.stack([T_LOOP, EYE])
+    fresh = det.verify(scene[2], refs, init)
+    calls = []
+    monkeypatch.setattr(detector_module, "prepare_reference",
+                        lambda *a, **k: calls.append(1) or prepare_reference(*a, **k))
+    tracking = replace(det.nf_config, ccs_threshold=0.5, scr_threshold=0.1)  # the tracker's thresholds
+    query = replace(scene[2], prepared=prepare_reference(scene[2].frame, tracking))
+    reused = det.verify(query, refs, init)
+    assert calls == []
+    for name in ("tar_T_ref", "ccs", "scr", "ok", "iterations"):
+        assert torch.equal(getattr(reused, name), getattr(fresh, name)), name
+    other = replace(scene[2], prepared=prepare_reference(scene[2].frame, replace(det.nf_config, n_samples=500)))
+    det.verify(other, refs, init)
+    assert calls == [1]
+    query.compact()
+    assert query.prepared is None
+
+
 def test_only_sift_mode_uses_lifted_estimate(scene):
     det = _detector(scene, mode="only_sift")
     loops = [lp for lp in det.detect(scene[2], [0, 1, 3], {}, {}, scene) if lp.ref_id == 0]

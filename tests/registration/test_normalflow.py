@@ -9,6 +9,7 @@ from tactile_slam.geometry.frame import Frame, crop_to_contact
 from tactile_slam.registration.normalflow import (
     normalflow,
     prepare_reference,
+    reference_settings,
     register,
     register_pair,
     register_prepared,
@@ -487,3 +488,22 @@ def test_coarse_level(scene):
     assert (rot < 0.1).all() and (trans < 0.01).all() and bool(res.ok.all()), (rot, trans)
     with pytest.raises(RegistrationError, match="coarse_factors"):
         register(ref, tars[:1], None, NormalFlowConfig(coarse_factors=(7,)))
+
+
+def test_reference_settings_say_when_a_preparation_can_be_reused():
+    """A preparation records what it took from its configuration: thresholds and iteration
+    limits do not change it, the samples, the Jacobian and the coarse levels do; the
+    fallback pyramid records its own levels."""
+    base = NormalFlowConfig()
+    same = replace(base, ccs_threshold=0.5, scr_threshold=0.1, max_iters=7, fallback_factors=(4,))
+    assert reference_settings(same) == reference_settings(base)
+    for other in (replace(base, n_samples=500), replace(base, selection="threshold"),
+                  replace(base, jacobian="autograd"), replace(base, coarse_factors=(4,)),
+                  replace(base, selection="random"), replace(base, selection="random", seed=1)):
+        assert reference_settings(other) != reference_settings(base)
+    assert reference_settings(replace(base, seed=5)) == reference_settings(base)  # seed only for "random"
+    ref = frames(bumpy(0), [torch.eye(4, dtype=torch.float64)])
+    prep = prepare_reference(ref, same)
+    assert prep.settings == reference_settings(base) and prep[0:1].settings == prep.settings
+    assert prep.retry_levels(None, (16, 4), base.jacobian).settings == \
+        reference_settings(replace(base, coarse_factors=(4, 16)))

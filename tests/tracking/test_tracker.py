@@ -239,6 +239,19 @@ def test_keyframes_do_not_keep_their_geometry_batch_alive():
     torch.testing.assert_close(kfs[0].frame.normals, batch[0].normals)
 
 
+def test_keyframes_carry_the_trackers_preparation_until_compacted():
+    """Every keyframe (session heads, lazy-rule keyframes, flushed tails) carries what the
+    registrar prepared for it as the tracking reference, so that loop verification need
+    not prepare it again; compacting drops it."""
+    batch = Frame.cat([frame(i, c) for i, c in enumerate([True, True, True, True, False, True, True])])
+    tr = Tracker(TrackingConfig(), ScriptedRegistrar(lambda r, t: t == 3))
+    kfs = [k for i in range(len(batch)) for k in tr.step(batch[i]).keyframes] + tr.finish()
+    assert len(kfs) >= 4 and any(not k.new_session for k in kfs)
+    assert [k.prepared for k in kfs] == [k.video_index for k in kfs]  # ScriptedRegistrar prepares to the index
+    kfs[0].compact()
+    assert kfs[0].prepared is None and kfs[1].prepared == kfs[1].video_index
+
+
 @pytest.mark.parametrize("fails, emitted", [
     (lambda r, t: (r, t) == (0, 1), []),  # right after the session's keyframe
     (lambda r, t: t == 3, [2]),  # against the keyframe and, after the lazy rule, the previous frame
