@@ -195,9 +195,15 @@ def _level(points_t, normals_t, dn_t, valid, factor, jacobian) -> Level:
 def _outer_products(jac: torch.Tensor, chunk_samples: int = 8192) -> torch.Tensor:
     """Per-sample ``J_k^T J_k`` of a channels-first Jacobian: ``(B, 5, 3, K)`` ->
     ``(B, K, 25)``. Elementwise over the contiguous sample axis, accumulated in place
-    (several times faster than a batched product of 3x5 matrices), then stored
-    transposed; a few references at a time so the intermediate stays in cache."""
+    (several times faster than a batched product of 3x5 matrices). Several references
+    are stored transposed (an iteration gathers the rows of a pair's unshared samples), a
+    few at a time so the intermediate stays in cache; one reference (read whole by a
+    matrix product) keeps the products as computed, returned as a transposed view."""
     b, _, _, k = jac.shape
+    if b == 1:
+        o = torch.mul(jac[:, :, None, 0], jac[:, None, :, 0])
+        o.addcmul_(jac[:, :, None, 1], jac[:, None, :, 1]).addcmul_(jac[:, :, None, 2], jac[:, None, :, 2])
+        return o.view(1, 25, k).mT
     out = torch.empty((b, k, 25), dtype=jac.dtype, device=jac.device)
     step = max(1, chunk_samples // max(k, 1))
     for i in range(0, b, step):

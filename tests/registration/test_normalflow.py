@@ -212,6 +212,21 @@ def test_prepared_reference_is_reused(scene, batched):
     _close(register_prepared(prep, tars[8:], init[8:]), batched[8:])
 
 
+def test_one_reference_taken_from_a_batch_solves_like_its_own(scene):
+    """A reference prepared alone keeps its per-sample products sample-last (a transposed
+    view), one taken out of a batch of references keeps the batch's sample-first rows: both
+    give the same normal matrices, so the same solves of several targets and of one."""
+    ref, tars, _, init = scene
+    alone = prepare_reference(ref)
+    from_batch = prepare_reference(Frame.cat([tars[1], ref]))[1:2]
+    assert not alone.levels[-1].jtj.is_contiguous() and from_batch.levels[-1].jtj.is_contiguous()
+    torch.testing.assert_close(alone.levels[-1].jtj, from_batch.levels[-1].jtj, rtol=0, atol=0)
+    for t in (slice(0, 4), slice(5, 6)):
+        a, b = register_prepared(alone, tars[t], init[t]), register_prepared(from_batch, tars[t], init[t])
+        torch.testing.assert_close(a.tar_T_ref, b.tar_T_ref, rtol=0, atol=1e-12)
+        assert a.ok.tolist() == b.ok.tolist() and a.iterations.tolist() == b.iterations.tolist()
+
+
 def test_results_are_ordinary_tensors_under_any_grad_mode(scene):
     """The solve runs under inference mode, but what it returns can be changed in place and
     enter autograd; the result is the same whether the caller has grad enabled, disabled
