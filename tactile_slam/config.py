@@ -154,6 +154,10 @@ class NormalFlowConfig:
     through coarse levels of these factors, e.g. ``(16, 4)`` (empty: no retry); only
     failures pay for it. For registration from a poor initial guess; off by default
     because the tracker needs a failure to make a keyframe (docs/registration.md).
+    ``fallback_shift_search``: pairs that the fallback does not save are retried once
+    more through the same levels, from the start moved to the in-plane shift that best
+    aligns the two contacts' normal maps (a global search by FFT cross-correlation, for
+    touches millimetres apart; ``registration/shift.py``).
     ``cpu_chunk_samples``: on the CPU a batch of pairs with their own references is
     solved in chunks of ``cpu_chunk_samples // n_samples`` pairs (at least 1), each
     prepared and solved to the end before the next, so that its samples, Jacobians and
@@ -179,6 +183,7 @@ class NormalFlowConfig:
     coarse_factors: tuple[int, ...] = ()
     coarse_max_iters: int = 20
     fallback_factors: tuple[int, ...] = ()
+    fallback_shift_search: bool = True
     cpu_chunk_samples: int = 48_000
 
 

@@ -147,6 +147,7 @@ def run(args) -> Path:
         "normalflow": NormalFlowConfig(),
         "normalflow_coarse4": NormalFlowConfig(coarse_factors=(4,)),
         "normalflow_fallback16-4": NormalFlowConfig(fallback_factors=(16, 4)),
+        "normalflow_fallback16-4_noshift": NormalFlowConfig(fallback_factors=(16, 4), fallback_shift_search=False),
         "normalflow_min7 (reference's >= 7 iterations)": NormalFlowConfig(min_iters=7),
         "threshold_rule (public GelSLAM selection)": NormalFlowConfig(selection="threshold", min_iters=7),
         "old_normalflow (random 5000, no checks)": NormalFlowConfig(selection="random", n_samples=5000,

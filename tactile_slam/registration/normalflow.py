@@ -32,6 +32,7 @@ from tactile_slam.geometry.morphology import as_weights
 from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
 from tactile_slam.registration.result import RegistrationError, RegistrationResult, TrackingLost
 from tactile_slam.registration.sampling import nonzero_2d, select_samples
+from tactile_slam.registration.shift import correlation_shift
 
 JACOBIANS = {"analytic": jacobian_analytic, "autograd": jacobian_autograd}
 
@@ -76,6 +77,7 @@ class PreparedReference:
         m_per_px: metres per pixel.
         normals_map: ``(B, H, W, 3)`` the references' normal maps in the working dtype
             (the source of coarse levels built later, :meth:`retry_levels`).
+        contact: ``(B, H, W)`` bool contact masks (the fallback's shift search).
         settings: :func:`reference_settings` of the configuration it was prepared with
             (another solve may reuse it when its own settings are equal).
 
@@ -92,6 +94,7 @@ class PreparedReference:
     shape: tuple[int, int]
     m_per_px: float
     normals_map: torch.Tensor
+    contact: torch.Tensor
     settings: tuple = ()
 
     def __len__(self) -> int:
@@ -111,7 +114,7 @@ class PreparedReference:
         levels = [Level(lvl.normals_t[i], lvl.jacobian_t[i], lvl.jtj[i], lvl.ata_full[i], lvl.factor)
                   for lvl in self.levels]
         return PreparedReference(self.points_t[i], self.curvature[i], self.spread[i], self.valid[i], levels,
-                                 self.shape, self.m_per_px, self.normals_map[i], self.settings)
+                                 self.shape, self.m_per_px, self.normals_map[i], self.contact[i], self.settings)
 
     def retry_levels(self, ids: np.ndarray | None, factors: tuple[int, ...], jacobian: str) -> "PreparedReference":
         """The references ``ids`` (all if ``None``) with coarse levels ``factors`` in
@@ -120,7 +123,7 @@ class PreparedReference:
         levels = [_coarse_level(sub.normals_map, sub.points, sub.valid, self.m_per_px, f, jacobian)
                   for f in sorted(factors, reverse=True)]
         prep = PreparedReference(sub.points_t, sub.curvature, sub.spread, sub.valid, [*levels, sub.levels[-1]],
-                                 self.shape, self.m_per_px, sub.normals_map,
+                                 self.shape, self.m_per_px, sub.normals_map, sub.contact,
                                  (*self.settings[:3], jacobian, tuple(sorted(factors, reverse=True))) if self.settings
                                  else ())
         _check_reference_finite(prep)  # the coarse levels read the normal map around the samples
@@ -272,7 +275,7 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     dn_t = sobel_at(normals_map, idx).permute(0, 2, 3, 1) / s  # (B, 3, 2, K)
     levels.append(_level(points.mT, normals.mT, dn_t, valid, 1, config.jacobian))
     prep = PreparedReference(points.mT.contiguous(), curv, _spread(points, valid), valid, levels, (h, w), s,
-                             normals_map, reference_settings(config))
+                             normals_map, ref.contact, reference_settings(config))
     _check_reference_finite(prep)
     return prep
 
@@ -535,8 +538,9 @@ def register_prepared(
     Returns:
         a :class:`RegistrationResult` of ``B`` pairs; failures are reported, not raised.
         With ``config.fallback_factors``, pairs that fail are solved once more from the
-        same initial pose through coarse levels of those factors; a retry replaces the
-        failure only if it passes every check.
+        same initial pose through coarse levels of those factors, and those that still
+        fail (with ``fallback_shift_search``) from the initial pose moved to the contacts'
+        best-aligning shift; a retry replaces the failure only if it passes every check.
 
     The work runs under ``torch.inference_mode`` (no autograd bookkeeping: about 10 %
     of a pair's time); the result is returned as ordinary tensors.
@@ -581,18 +585,42 @@ def _chunk_pairs(config: NormalFlowConfig, k: int, device: torch.device) -> int:
 def _register_with_fallback(prep: PreparedReference, tar: Frame, init: np.ndarray, config: NormalFlowConfig
                             ) -> RegistrationResult:
     """Solve (:func:`_register_levels`), then retry the failures through
-    ``config.fallback_factors`` if set. Arguments already checked; ``init`` host
-    float64 ``(1 or B, 4, 4)``."""
-    b = len(tar)
+    ``config.fallback_factors`` if set: from the same start, then (``fallback_shift_search``)
+    from the start moved to the in-plane shift that best aligns the two contacts
+    (:func:`~tactile_slam.registration.shift.correlation_shift`). Arguments already
+    checked; ``init`` host float64 ``(1 or B, 4, 4)``."""
     res = _register_levels(prep, tar, init, config)
-    if not config.fallback_factors or bool(res.ok.all()):
+    if not config.fallback_factors:
         return res
-    # fallback: the failed pairs again from the same start, coarse levels first
-    ids = np.flatnonzero(~res.ok.cpu().numpy())
-    retry = _register_levels(prep.retry_levels(ids if len(prep) > 1 else None, config.fallback_factors,
-                                               config.jacobian),
-                             tar[torch.from_numpy(ids).to(tar.device)], init[ids] if len(init) > 1 else init, config)
-    take = torch.zeros(b, dtype=torch.bool, device=res.ok.device)
+    starts = [lambda ids: init[ids] if len(init) > 1 else init]
+    if config.fallback_shift_search:
+        starts.append(lambda ids: _shifted_starts(prep, tar, init, ids))
+    for start in starts:
+        ids = np.flatnonzero(~res.ok.cpu().numpy())
+        if len(ids) == 0:
+            break
+        retry = _register_levels(prep.retry_levels(ids if len(prep) > 1 else None, config.fallback_factors,
+                                                   config.jacobian),
+                                 tar[torch.from_numpy(ids).to(tar.device)], start(ids), config)
+        res = _take_successes(res, ids, retry)
+    return res
+
+
+def _shifted_starts(prep: PreparedReference, tar: Frame, init: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """``init`` of the pairs ``ids`` with its ``(x, y)`` translation replaced by the contacts'
+    best-aligning shift (rotation and ``z`` kept). ``(n, 4, 4)`` host float64."""
+    sel = torch.from_numpy(ids).to(tar.device)
+    ref = prep if len(prep) == 1 else prep[torch.from_numpy(ids).to(prep.device)]
+    shift = correlation_shift(ref.normals_map, ref.contact, tar.normals[sel].to(prep.device),
+                              tar.contact[sel].to(prep.device))
+    out = np.array(np.broadcast_to(init[ids] if len(init) > 1 else init, (len(ids), 4, 4)))
+    out[:, :2, 3] = shift.cpu().numpy() * prep.m_per_px
+    return out
+
+
+def _take_successes(res: RegistrationResult, ids: np.ndarray, retry: RegistrationResult) -> RegistrationResult:
+    """``res`` with the pairs ``ids`` replaced by ``retry``'s results where those passed."""
+    take = torch.zeros(len(res.ok), dtype=torch.bool, device=res.ok.device)
     take[torch.from_numpy(ids).to(take.device)] = retry.ok
     merged = {f.name: getattr(res, f.name).clone() for f in fields(RegistrationResult)}
     for name, value in merged.items():

@@ -312,19 +312,26 @@ class TestFallback:
     @pytest.mark.parametrize("own_references", [False, True])
     def test_only_failures_are_retried(self, own_references):
         """One batch: a passing pair keeps its exact result, a failure the retry fixes takes
-        the retry's, and a pair that fails both ways keeps its first result."""
+        the retry's, and a pair that fails both ways keeps its first result. With the shift
+        search, the pair started off the contact is retried from the searched shift and
+        recovered; the others keep their results."""
         big = rigid(tx_mm=1.5, ty_mm=-0.75)
         f = frames(bumpy(1), [EYE, rigid(rz_deg=-10), big])
         refs = Frame.cat([f[0]] * 3) if own_references else f[0]
         tars = Frame.cat([f[1], f[2], f[1]])
         init = torch.stack([EYE, EYE, rigid(tx_mm=9.0)])  # the last starts off the contact
         off = register(refs, tars, init, NormalFlowConfig(fallback_factors=()))
-        on = register(refs, tars, init, NormalFlowConfig(fallback_factors=(16, 4)))
+        on = register(refs, tars, init, NormalFlowConfig(fallback_factors=(16, 4), fallback_shift_search=False))
         assert off.ok.tolist() == [True, False, False] and on.ok.tolist() == [True, True, False]
         for name in ("tar_T_ref", "ccs", "scr", "n_shared", "iterations", "converged"):
             a, b = getattr(on, name)[[0, 2]], getattr(off, name)[[0, 2]]
             assert torch.equal(a, b) or torch.allclose(a, b, rtol=0, atol=0, equal_nan=True), name
         rot, trans = pose_error(on.tar_T_ref[1:2], big[None])
+        assert float(rot) < 0.1 and float(trans) < 0.01
+        searched = register(refs, tars, init, NormalFlowConfig(fallback_factors=(16, 4)))
+        assert searched.ok.tolist() == [True, True, True]
+        assert torch.equal(searched.tar_T_ref[:2], on.tar_T_ref[:2])
+        rot, trans = pose_error(searched.tar_T_ref[2:], rigid(rz_deg=-10)[None])
         assert float(rot) < 0.1 and float(trans) < 0.01
 
     def test_bad_factor(self, scene):

@@ -1,0 +1,53 @@
+"""Global in-plane shift between two touches by cross-correlation of their normal maps.
+
+NormalFlow converges from starts within a fraction of the texture's scale; a touch moved
+by several millimetres is outside that basin, and on a fine texture block-averaged levels
+flatten the very signal that would guide it. The shift that best aligns the two contacts'
+normal ``(x, y)`` maps is found globally instead, for every shift at once through FFTs:
+the correlation of the maps (zero outside the contacts) divided by the contacts' overlap
+at that shift, over shifts whose overlap is at least ``min_overlap`` of the largest. A
+pure translation leaves the normals unchanged, so the peak sits at the true shift; tilts
+and large rotations change the maps, so this is a start for a retry, not a pose.
+"""
+
+from __future__ import annotations
+
+import torch
+
+
+def correlation_shift(ref_normals: torch.Tensor, ref_contact: torch.Tensor, tar_normals: torch.Tensor,
+                      tar_contact: torch.Tensor, min_overlap: float = 0.2) -> torch.Tensor:
+    """The pixel shift ``d`` that best aligns the target with the reference shifted by ``d``.
+
+    Args:
+        ref_normals, tar_normals: ``(B or 1, H, W, 3)`` and ``(B, H, W, 3)`` normal maps.
+        ref_contact, tar_contact: ``(B or 1, H, W)`` and ``(B, H, W)`` bool contact masks.
+        min_overlap: shifts whose contact overlap is below this fraction of the pair's
+            largest overlap are not considered (their normalised correlation is noise).
+
+    Returns:
+        ``(B, 2)`` float64 ``(dx, dy)`` in pixels: a reference pixel ``u`` shows up at
+        ``u + d`` in the target. Pairs whose contacts cannot overlap get ``(0, 0)``.
+    """
+    if not 0.0 < min_overlap <= 1.0:
+        raise ValueError(f"min_overlap must be in (0, 1], got {min_overlap}")
+    h, w = tar_contact.shape[-2:]
+    size = (2 * h, 2 * w)  # zero padding: no wrap-around
+
+    def spectra(normals: torch.Tensor, contact: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        mask = contact.to(torch.float64)
+        maps = normals[..., :2].to(torch.float64).permute(0, 3, 1, 2) * mask[:, None]
+        return torch.fft.rfft2(maps, s=size), torch.fft.rfft2(mask, s=size)
+
+    (n_ref, m_ref), (n_tar, m_tar) = spectra(ref_normals, ref_contact), spectra(tar_normals, tar_contact)
+    corr = torch.fft.irfft2((n_tar * n_ref.conj()).sum(1), s=size)  # (B, 2H, 2W), index = shift (dy, dx)
+    overlap = torch.fft.irfft2(m_tar * m_ref.conj(), s=size)
+    best = overlap.flatten(1).amax(1)
+    usable = (overlap >= min_overlap * best[:, None, None]) & (overlap > 0.5)
+    score = torch.where(usable, corr / overlap.clamp_min(1.0), -torch.inf)
+    flat = score.flatten(1).argmax(1)
+    dy, dx = flat // size[1], flat % size[1]
+    dy = torch.where(dy >= h, dy - size[0], dy)
+    dx = torch.where(dx >= w, dx - size[1], dx)
+    shift = torch.stack([dx, dy], 1).to(torch.float64)
+    return torch.where((best > 0.5)[:, None], shift, torch.zeros_like(shift))
