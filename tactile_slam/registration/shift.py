@@ -35,6 +35,8 @@ def correlation_shift(ref_normals: torch.Tensor, ref_contact: torch.Tensor, tar_
     """
     if not 0.0 < min_overlap <= 1.0:
         raise ValueError(f"min_overlap must be in (0, 1], got {min_overlap}")
+    if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
+        raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
     h, w = (n // factor for n in tar_contact.shape[-2:])
     size = (2 * h, 2 * w)  # zero padding: no wrap-around
 

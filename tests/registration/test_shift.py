@@ -55,6 +55,9 @@ def test_shift_pairs_and_no_overlap(moved):
     assert (d[0] - want).abs().max() <= 2.0 and d[1].tolist() == [0.0, 0.0]
     with pytest.raises(ValueError, match="min_overlap"):
         correlation_shift(ref_n, ref_c, ref_n, ref_c, min_overlap=0.0)
+    for factor in (0, 1.5, True):
+        with pytest.raises(ValueError, match="factor"):
+            correlation_shift(ref_n, ref_c, ref_n, ref_c, factor=factor)
 
 
 def test_fallback_starts_from_the_shift_when_the_coarse_retry_fails(moved, monkeypatch):
