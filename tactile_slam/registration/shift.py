@@ -23,6 +23,7 @@ def correlation_shift(ref_normals: torch.Tensor, ref_contact: torch.Tensor, tar_
     Args:
         ref_normals, tar_normals: ``(B or 1, H, W, 3)`` and ``(B, H, W, 3)`` normal maps.
         ref_contact, tar_contact: ``(B or 1, H, W)`` and ``(B, H, W)`` bool contact masks.
+            Pixels whose normal is not finite count as outside the contact.
         min_overlap: shifts whose contact overlap is below this fraction of the pair's
             largest overlap are not considered (their normalised correlation is noise).
         factor: the maps are averaged over ``factor x factor`` blocks first (the search
@@ -37,12 +38,16 @@ def correlation_shift(ref_normals: torch.Tensor, ref_contact: torch.Tensor, tar_
         raise ValueError(f"min_overlap must be in (0, 1], got {min_overlap}")
     if isinstance(factor, bool) or not isinstance(factor, int) or factor < 1:
         raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
+    _check_maps(ref_normals, ref_contact, tar_normals, tar_contact)
+    if len(tar_contact) == 0:
+        return torch.zeros((0, 2), dtype=torch.float64, device=tar_contact.device)
     h, w = (n // factor for n in tar_contact.shape[-2:])
     size = (2 * h, 2 * w)  # zero padding: no wrap-around
 
     def spectra(normals: torch.Tensor, contact: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        mask = contact.to(torch.float32)[:, None]
-        maps = torch.cat([normals[..., :2].to(torch.float32).permute(0, 3, 1, 2) * mask, mask], 1)
+        xy = normals[..., :2].to(torch.float32).permute(0, 3, 1, 2)
+        mask = (contact & torch.isfinite(xy).all(1)).to(torch.float32)[:, None]
+        maps = torch.cat([torch.where(mask > 0, xy, 0.0), mask], 1)
         pooled = torch.fft.rfft2(F.avg_pool2d(maps, factor), s=size)  # (B, 3, ...): nx, ny, contact
         return pooled[:, :2], pooled[:, 2]
 
@@ -58,3 +63,15 @@ def correlation_shift(ref_normals: torch.Tensor, ref_contact: torch.Tensor, tar_
     dx = torch.where(dx >= w, dx - size[1], dx)
     shift = torch.stack([dx, dy], 1).to(torch.float64) * factor
     return torch.where((best > 0.5)[:, None], shift, torch.zeros_like(shift))
+
+
+def _check_maps(ref_normals: torch.Tensor, ref_contact: torch.Tensor, tar_normals: torch.Tensor,
+                tar_contact: torch.Tensor) -> None:
+    """Shapes of :func:`correlation_shift`'s maps, with a clear error."""
+    for normals, contact, what in ((ref_normals, ref_contact, "reference"), (tar_normals, tar_contact, "target")):
+        if normals.ndim != 4 or normals.shape[-1] != 3 or tuple(contact.shape) != tuple(normals.shape[:3]):
+            raise ValueError(f"{what}: need (B, H, W, 3) normals and (B, H, W) contact masks, got "
+                             f"{tuple(normals.shape)} and {tuple(contact.shape)}")
+    if ref_normals.shape[1:] != tar_normals.shape[1:] or len(ref_normals) not in (1, len(tar_normals)):
+        raise ValueError(f"reference maps {tuple(ref_normals.shape)} do not fit target maps "
+                         f"{tuple(tar_normals.shape)} (same image size, batch 1 or the targets')")

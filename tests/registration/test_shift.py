@@ -78,3 +78,22 @@ def test_fallback_starts_from_the_shift_when_the_coarse_retry_fails(moved, monke
     small = frames(bumpy(1), [EYE, rigid(tx_mm=0.2)])
     assert bool(register(small[0:1], small[1:2], None, NormalFlowConfig(fallback_factors=(16, 4))).ok[0])
     assert calls == [1]
+
+
+def test_bad_maps_and_non_finite_normals(moved):
+    """Wrong shapes and mismatched batches are clear errors; an empty target batch gives no
+    shifts; a NaN normal inside the target's contact is left out of the contact instead of
+    spoiling every shift."""
+    f = moved["speckled"]
+    n, c = f.normals, f.contact
+    for args in ((n[:1, ..., :2], c[:1], n[1:], c[1:]), (n[:1], c[:1, :10], n[1:], c[1:]),
+                 (n[:2], c[:2], n[1:], c[1:]), (n[:1, :100], c[:1, :100], n[1:], c[1:])):
+        with pytest.raises(ValueError, match="normals|do not fit"):
+            correlation_shift(*args)
+    assert correlation_shift(n[:1], c[:1], n[:0], c[:0]).shape == (0, 2)
+    tar = n[1:2].clone()
+    r, col = (int(v[0]) for v in torch.nonzero(c[1]).T)
+    tar[0, r, col] = float("nan")
+    d = correlation_shift(n[:1], c[:1], tar, c[1:2])
+    want = torch.tensor(MOVES_MM[0], dtype=torch.float64) * 1e-3 / S
+    assert (d[0] - want).abs().max() <= 2.0
