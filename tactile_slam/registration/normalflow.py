@@ -622,10 +622,10 @@ def _take_successes(res: RegistrationResult, ids: np.ndarray, retry: Registratio
     """``res`` with the pairs ``ids`` replaced by ``retry``'s results where those passed."""
     take = torch.zeros(len(res.ok), dtype=torch.bool, device=res.ok.device)
     take[torch.from_numpy(ids).to(take.device)] = retry.ok
-    merged = {f.name: getattr(res, f.name).clone() for f in fields(RegistrationResult)}
-    for name, value in merged.items():
-        value[take] = getattr(retry, name)[retry.ok]
-    return RegistrationResult(**merged)
+    merged = res.clone()
+    for f in fields(RegistrationResult):
+        getattr(merged, f.name)[take] = getattr(retry, f.name)[retry.ok]
+    return merged
 
 
 def _register_levels(prep: PreparedReference, tar: Frame, init: np.ndarray, config: NormalFlowConfig
