@@ -202,7 +202,7 @@ class Tracker:
                       prepared=prepared)
         self.next_keyframe_id += 1
         self.kf = kf
-        self.kf_prepared = prepared
+        self.kf_prepared = prepared  # kept here too: the pipeline's Keyframe.compact() drops kf.prepared
         return kf
 
     def _reverse_edge(self, prepared: Any, prev_T_kf: torch.Tensor) -> torch.Tensor:
