@@ -19,7 +19,7 @@ from torch import nn
 from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet
 from tactile_slam.calibration.dataset import sphere_targets
 from tactile_slam.calibration.labels import PressLabel
-from tactile_slam.calibration.model import map_rows
+from tactile_slam.calibration.model import check_chunk_pixels, map_rows
 
 COLOUR_FORMAT_TAG = "tactile-slam-colour-model"
 
@@ -55,9 +55,7 @@ class ColourModel:
 
     def __init__(self, hidden: tuple[int, ...] = (64, 64), meta: dict[str, Any] | None = None,
                  chunk_pixels: int = 8192):
-        if chunk_pixels < 0:
-            raise ValueError(f"chunk_pixels must be >= 0, got {chunk_pixels}")
-        self.chunk_pixels = int(chunk_pixels)
+        self.chunk_pixels = check_chunk_pixels(chunk_pixels)
         self.hidden = tuple(int(h) for h in hidden)
         self.net = _ColourMLP(self.hidden).eval()
         self.meta = dict(meta or {})

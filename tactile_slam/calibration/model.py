@@ -49,6 +49,13 @@ class GradientMLP(nn.Module):
         return getattr(self, f"fc{self.n_layers}")(x)
 
 
+def check_chunk_pixels(value: int) -> int:
+    """A ``chunk_pixels`` setting: an integer >= 0 (0: all pixels at once)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"chunk_pixels must be an integer >= 0, got {value!r}")
+    return value
+
+
 def map_rows(fn, x: torch.Tensor, rows: int) -> torch.Tensor:
     """``fn`` over the rows of ``x`` ``(N, C)``, at most ``rows`` at a time (``0``: all at
     once) -> ``(N, D)``. For per-pixel networks on the CPU: one product over a whole batch
@@ -156,14 +163,12 @@ class GradientDecoder:
     ):
         if background.ndim != 3 or background.shape[-1] != 3:
             raise ValueError(f"background must be (H, W, 3), got {tuple(background.shape)}")
-        if chunk_pixels < 0:
-            raise ValueError(f"chunk_pixels must be >= 0, got {chunk_pixels}")
         self.model = model
         self.device = next(model.parameters()).device
         self.background = background.to(self.device, torch.float32)
         self.skip_color_dist = float(skip_color_dist)
         self.max_angle = float(max_angle)
-        self.chunk_pixels = int(chunk_pixels)
+        self.chunk_pixels = check_chunk_pixels(chunk_pixels)
         with torch.no_grad():
             feats = pixel_features(self.background[None])
             self.bg_slopes = self._slopes(feats.reshape(-1, 5)).reshape(*self.background.shape[:2], 2)

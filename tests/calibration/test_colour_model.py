@@ -31,8 +31,9 @@ def test_chunks_give_the_same_colours():
     for chunk in (1, 37, 390, 10 ** 6):
         model.chunk_pixels = chunk
         torch.testing.assert_close(model(g), ref, rtol=1e-6, atol=1e-6)
-    with pytest.raises(ValueError, match="chunk_pixels"):
-        ColourModel((8,), chunk_pixels=-1)
+    for bad in (-1, 2.5, False):
+        with pytest.raises(ValueError, match="chunk_pixels"):
+            ColourModel((8,), chunk_pixels=bad)
 
 
 def test_bad_input():

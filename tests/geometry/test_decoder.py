@@ -89,9 +89,10 @@ def test_decoder_chunks_give_identical_gradients(skip):
     assert (GradientDecoder(m, bg, skip, chunk_pixels=7)(bg[None]) == 0).all()
 
 
-def test_decoder_bad_chunk():
+@pytest.mark.parametrize("chunk", [-1, 1.5, True, "8"])
+def test_decoder_bad_chunk(chunk):
     with pytest.raises(ValueError, match="chunk_pixels"):
-        GradientDecoder(GradientMLP(), torch.zeros(24, 32, 3), chunk_pixels=-1)
+        GradientDecoder(GradientMLP(), torch.zeros(24, 32, 3), chunk_pixels=chunk)
 
 
 def test_map_rows_covers_every_row_once():
