@@ -164,6 +164,12 @@ class NormalFlowConfig:
     target maps stay in cache across its iterations (0: the whole batch at once). One
     reference for every target, and other devices, always run the whole batch. Results
     do not depend on it beyond rounding.
+    ``stall_check_iters``: every this many full-resolution iterations, a pair with a
+    failing score (CCS or SCR at its current pose) that would still fail at
+    ``max_iters`` if it kept improving at its rate since the previous check stops and is
+    reported failed (it is iterating in a wrong basin; without the check it would use the
+    rest of ``max_iters`` and still fail). Only with ``check_scores``; 0 disables
+    (docs/registration.md, "Stall check").
     """
 
     n_samples: int | None = 3000
@@ -185,6 +191,7 @@ class NormalFlowConfig:
     fallback_factors: tuple[int, ...] = ()
     fallback_shift_search: bool = True
     cpu_chunk_samples: int = 48_000
+    stall_check_iters: int = 10
 
 
 @dataclass

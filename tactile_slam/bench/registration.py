@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -149,6 +148,7 @@ def run(args) -> Path:
         "normalflow_fallback16-4": NormalFlowConfig(fallback_factors=(16, 4)),
         "normalflow_fallback16-4_noshift": NormalFlowConfig(fallback_factors=(16, 4), fallback_shift_search=False),
         "normalflow_min7 (reference's >= 7 iterations)": NormalFlowConfig(min_iters=7),
+        "normalflow_no_stall_check (stall_check_iters=0)": NormalFlowConfig(stall_check_iters=0),
         "threshold_rule (public GelSLAM selection)": NormalFlowConfig(selection="threshold", min_iters=7),
         "old_normalflow (random 5000, no checks)": NormalFlowConfig(selection="random", n_samples=5000,
                                                                     check_scores=False, min_iters=7),
@@ -174,14 +174,21 @@ def run(args) -> Path:
         batched[f"B={b}"] = st | {"median_ms_per_pair": st["median_ms"] / b,
                                   "max_rot_diff_vs_single_deg": float(rot_diff.max()),
                                   "max_trans_diff_vs_single_mm": float(trans_diff.max())}
-    if dev.type == "cpu":  # the same 64 pairs as one piece: what the cache-sized chunks gain here
-        whole = replace(NormalFlowConfig(), cpu_chunk_samples=0)
-        chunked_s, whole_s = [], []
-        for _ in range(args.repeats * 2):  # alternating, so a drift of the machine favours neither
-            chunked_s += time_fn(lambda: register(ref_b, tar_b), 1, warmup=0)
-            whole_s += time_fn(lambda: register(ref_b, tar_b, None, whole), 1, warmup=0)
-        batched["B=64, alternating: chunked (default)"] = timing_stats(chunked_s)
-        batched["B=64, alternating: whole batch (cpu_chunk_samples=0)"] = timing_stats(whole_s)
+    # the same 64 pairs without the stall check (and on the CPU as one piece, without the
+    # cache-sized chunks), alternating with the default so a drift of the machine favours neither
+    others = {"no stall check (stall_check_iters=0)": NormalFlowConfig(stall_check_iters=0)}
+    if dev.type == "cpu":
+        others["whole batch (cpu_chunk_samples=0)"] = NormalFlowConfig(cpu_chunk_samples=0)
+    samples = {name: [] for name in ["default", *others]}
+    for _ in range(args.repeats * 2):
+        samples["default"] += time_fn(lambda: register(ref_b, tar_b), 1, warmup=0, sync_cuda=sync)
+        for name, cfg_o in others.items():
+            samples[name] += time_fn(lambda: register(ref_b, tar_b, None, cfg_o), 1, warmup=0, sync_cuda=sync)
+    for name, st in samples.items():
+        batched[f"B=64, alternating: {name}"] = timing_stats(st)
+    no_stall = others["no stall check (stall_check_iters=0)"]
+    batched["B=64, iterations summed: default, no stall check"] = [
+        int(register(ref_b, tar_b, None, c).iterations.sum()) for c in (NormalFlowConfig(), no_stall)]
     # one reference, 64 targets (a keyframe against many frames): the object's own pairs
     own = [i for i in range(n) if obj_of[i] == args.objects[0]]
     tar_1 = Frame.cat([tars[own[i % len(own)]] for i in range(64)])

@@ -158,6 +158,8 @@ def _check_config(config: NormalFlowConfig, shape: tuple[int, int] | None = None
         raise RegistrationError("normalflow.max_iters, min_iters and coarse_max_iters must be >= 1")
     if config.cpu_chunk_samples < 0:
         raise RegistrationError(f"normalflow.cpu_chunk_samples must be >= 0, got {config.cpu_chunk_samples}")
+    if config.stall_check_iters < 0:
+        raise RegistrationError(f"normalflow.stall_check_iters must be >= 0, got {config.stall_check_iters}")
     if config.lm_damping < 0:
         raise RegistrationError(f"normalflow.lm_damping must be >= 0, got {config.lm_damping}")
     for name in ("coarse_factors", "fallback_factors"):
@@ -376,6 +378,8 @@ class _State:
     converged: np.ndarray  # (B,)
     iterations: np.ndarray  # (B,) int64
     ata: np.ndarray  # (B, 5, 5) last normal equations
+    stalled: np.ndarray  # (B,) stopped by the stall check: failing scores that cannot pass in time
+    checked: np.ndarray  # (B, 2) CCS and SCR at the last stall check (NaN before the first)
 
     def take(self, ids: np.ndarray) -> "_State":
         return _State(*(getattr(self, f.name)[ids] for f in fields(self)))
@@ -398,13 +402,15 @@ class _Pairs:
     ata_full: torch.Tensor  # (b or 1, 5, 5) float64
     n_map: torch.Tensor  # (b, 3, H, W)
     c_map: torch.Tensor  # (b, 1, H, W)
+    curvature: torch.Tensor | None = None  # (b or 1, K) reference L at the samples (stall check)
+    l_map: torch.Tensor | None = None  # (b, 1, H, W) target curvature (stall check)
 
     def take(self, ids: np.ndarray) -> "_Pairs":
         """The pairs ``ids`` (references of batch 1 stay shared)."""
         b = self.n_map.shape[0]
         idx = torch.from_numpy(ids).to(self.n_map.device)
         parts = (getattr(self, f.name) for f in fields(self))
-        return _Pairs(*(x if x.shape[0] == 1 and b > 1 else x[idx] for x in parts))
+        return _Pairs(*(x if x is None or (x.shape[0] == 1 and b > 1) else x[idx] for x in parts))
 
 
 def _bmv(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -428,6 +434,48 @@ def _shared_normal_matrix(pairs: _Pairs, shared: torch.Tensor) -> torch.Tensor:
     return pairs.ata_full - part.view(b, 5, 5)
 
 
+def _grid(pairs: _Pairs, motion: torch.Tensor) -> torch.Tensor:
+    """Grid coordinates of the samples under the packed poses: ``(b, 5, 4)`` -> ``(b, K, 2)``."""
+    return torch.baddbmm(motion[:, :2, 3:], motion[:, :2, :3], pairs.points_t.expand(len(motion), -1, -1)).mT
+
+
+def _scores(l_ref: np.ndarray, l_tar: np.ndarray, shared: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """CCS and SCR (method.md 4.5) over the ``shared`` samples, host float64; undefined
+    scores are NaN. ``(b or 1, K)``, ``(b, K)``, ``(b, K)`` bool -> ``(ccs (b,), scr (b,))``."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scr = (np.abs(l_ref) * shared).sum(1) / np.abs(l_ref).sum(1)
+        ccs = (l_ref * l_tar * shared).sum(1) / np.sqrt((l_ref ** 2 * shared).sum(1) * (l_tar ** 2 * shared).sum(1))
+    return ccs, scr
+
+
+def _passes(ccs: np.ndarray, scr: np.ndarray, config: NormalFlowConfig) -> np.ndarray:
+    """The score test of ``config`` (NaN fails). ``(b,)`` -> ``(b,)`` bool."""
+    return (ccs >= config.ccs_threshold) & (scr >= config.scr_threshold)
+
+
+def _stall_check(cur: _State, pairs: _Pairs, motion: torch.Tensor, config: NormalFlowConfig,
+                 align_corners: bool, iters_left: int) -> None:
+    """Stop the active pairs of ``cur`` (in place) that cannot pass the score test in time:
+    a failing score (CCS or SCR at the current poses), extrapolated linearly at its rate
+    since the previous check over the ``iters_left`` iterations left, stays below its
+    threshold. They are iterating in a wrong basin and would come back failed at the
+    iteration cap. The first check only records the scores. ``motion``: the packed
+    current poses ``(b, 5, 4)``."""
+    grid = _grid(pairs, motion)
+    rows = torch.cat([_sample(pairs.c_map, grid, "bilinear", align_corners),
+                      _sample(pairs.l_map, grid, "bilinear", align_corners)], 1)  # (b, 2, K)
+    inside = (_inside(grid) & pairs.valid).cpu().numpy()
+    c_tar, l_tar = rows.cpu().numpy().astype(np.float64).transpose(1, 0, 2)
+    now = np.stack(_scores(pairs.curvature.cpu().numpy().astype(np.float64), l_tar, (c_tar > 0.5) & inside), 1)
+    thresholds = np.array([config.ccs_threshold, config.scr_threshold])
+    with np.errstate(invalid="ignore"):  # NaN scores (nothing shared) cannot pass
+        reach = now + np.maximum(now - cur.checked, 0.0) * (iters_left / config.stall_check_iters)
+        stall = cur.active & np.isfinite(cur.checked).all(1) & ~(reach >= thresholds).all(1)
+    cur.checked = np.where(cur.active[:, None], now, cur.checked)
+    cur.stalled |= stall
+    cur.active &= ~stall
+
+
 def _linearise(pairs: _Pairs, motion: torch.Tensor, align_corners: bool) -> tuple[torch.Tensor, ...]:
     """Normal equations of the residual ``R^T N_tar(x') - n`` at the current poses.
 
@@ -440,7 +488,7 @@ def _linearise(pairs: _Pairs, motion: torch.Tensor, align_corners: bool) -> tupl
         one product; the host widens it) and the shared-sample count ``(b,)``.
     """
     b, k = motion.shape[0], pairs.points_t.shape[2]
-    grid = torch.baddbmm(motion[:, :2, 3:], motion[:, :2, :3], pairs.points_t.expand(b, -1, -1)).mT  # (b, K, 2)
+    grid = _grid(pairs, motion)
     near = _sample(pairs.c_map, grid, "nearest", align_corners).view(b, k)
     shared = (near > 0.5) & _inside(grid) & pairs.valid
     res = torch.bmm(motion[:, 2:, :3], _sample(pairs.n_map, grid, "bilinear", align_corners)) - pairs.normals_t
@@ -487,8 +535,13 @@ def _gauss_newton(st: _State, pairs: _Pairs, scale: np.ndarray, align_corners: b
     dev = pairs.points_t.device
     host_dt = _host_dtype(pairs.points_t.dtype)
     tol2 = (np.array([config.rot_tol, config.trans_tol_m]) * tol_scale) ** 2
+    check = config.stall_check_iters if config.check_scores and pairs.l_map is not None else 0
     for i in range(max_iters):
         motion = torch.from_numpy(_motion(cur.rot, cur.txy, scale, host_dt)).to(dev)
+        if check and i > 0 and i % check == 0:
+            _stall_check(cur, pairs, motion, config, align_corners, max_iters - i)
+            if not cur.active.any():
+                break
         ata, atb, n_shared = (x.cpu().numpy() for x in _linearise(pairs, motion, align_corners))
         atb = atb.astype(np.float64)
         if not np.isfinite(atb).all():  # finite Jacobians and poses: the sampled target normals
@@ -638,20 +691,22 @@ def _register_levels(prep: PreparedReference, tar: Frame, init: np.ndarray, conf
     c_map = as_weights(tar.contact.to(dev), dt).unsqueeze(1)
     flags = np.zeros(b, dtype=bool)
     st = _State(np.broadcast_to(init[:, :3, :3], (b, 3, 3)).copy(), np.broadcast_to(init[:, :2, 3], (b, 2)).copy(),
-                ~flags, flags.copy(), flags.copy(), np.zeros(b, dtype=np.int64), np.zeros((b, 5, 5)))
+                ~flags, flags.copy(), flags.copy(), np.zeros(b, dtype=np.int64), np.zeros((b, 5, 5)), flags.copy(),
+                np.full((b, 2), np.nan))
+    l_map = tar.curvature.to(device=dev, dtype=dt).unsqueeze(1)
     for lvl in prep.levels:
         f = lvl.factor
         coarse = f > 1  # coarse levels: block-averaged target maps, image-edge grid convention
         pairs = _Pairs(prep.points_t, prep.valid, lvl.normals_t, lvl.jacobian_t, lvl.jtj, lvl.ata_full,
-                       F.avg_pool2d(n_map, f) if coarse else n_map, F.avg_pool2d(c_map, f) if coarse else c_map)
+                       F.avg_pool2d(n_map, f) if coarse else n_map, F.avg_pool2d(c_map, f) if coarse else c_map,
+                       None if coarse else prep.curvature, None if coarse else l_map)
         scale = _grid_scale(prep.shape, prep.m_per_px, align_corners=not coarse)
         if coarse:
             st = _gauss_newton(st, pairs, scale, False, config, config.coarse_max_iters, 1, float(f))
             st.active, st.converged = ~st.lost, np.zeros_like(st.lost)
         else:
             st = _gauss_newton(st, pairs, scale, True, config, config.max_iters, config.min_iters, 1.0)
-    maps = (tar.height.to(device=dev, dtype=dt).unsqueeze(1), tar.curvature.to(device=dev, dtype=dt).unsqueeze(1),
-            c_map)
+    maps = (tar.height.to(device=dev, dtype=dt).unsqueeze(1), l_map, c_map)
     return _finish(prep, maps, st, config, scale)
 
 
@@ -696,10 +751,9 @@ def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig,
         n_z = vz.sum(1)
         tz_ok = n_z > 0
         tz = np.where(tz_ok, np.where(vz, h_tar * prep.m_per_px - z, 0.0).sum(1) / np.maximum(n_z, 1), 0.0)
-        # CCS and SCR over the samples landing in the target contact (bilinear)
-        shf = (c_tar > 0.5) & inside
-        scr = (np.abs(l_ref) * shf).sum(1) / np.abs(l_ref).sum(1)
-        ccs = (l_ref * l_tar * shf).sum(1) / np.sqrt((l_ref ** 2 * shf).sum(1) * (l_tar ** 2 * shf).sum(1))
+    # CCS and SCR over the samples landing in the target contact (bilinear)
+    shf = (c_tar > 0.5) & inside
+    ccs, scr = _scores(l_ref, l_tar, shf)
     # degenerate: eigenvalue ratio of the normal equations, translations scaled by the
     # samples' RMS spread so that both parts measure displacement
     sc = np.ones((b, 5))
@@ -710,9 +764,9 @@ def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig,
     with np.errstate(divide="ignore", invalid="ignore"):
         conditioning = np.where(finite & (eig[:, -1] > 0), eig[:, 0] / eig[:, -1], 0.0)
     degenerate = ~finite | ~(eig[:, 0] > config.degenerate_eig * eig[:, -1])
-    ok = ~st.lost & ~degenerate & tz_ok
+    ok = ~st.lost & ~st.stalled & ~degenerate & tz_ok
     if config.check_scores:
-        ok &= (ccs >= config.ccs_threshold) & (scr >= config.scr_threshold)
+        ok &= _passes(ccs, scr, config)
     T = np.zeros((b, 4, 4))
     T[:, :3, :3], T[:, :2, 3], T[:, 2, 3], T[:, 3, 3] = st.rot, st.txy, tz, 1.0
     out = dict(tar_T_ref=T, ccs=ccs, scr=scr, n_shared=shf.sum(1).astype(np.int64), iterations=st.iterations,

@@ -28,8 +28,15 @@ def test_tiny_run_reports_every_method_and_the_sweep(tmp_path):
     assert nf["all"]["rot_err_deg_median"] < 0.1 and nf["all"]["trans_err_mm_median"] < 0.01
     assert nf["all"]["wrong_rate"] <= 0.5
     assert nf["time_per_pair"]["median_ms"] > 0 and nf["time_per_pair_prepared"]["median_ms"] > 0
-    assert {"B=1", "B=8", "B=64", "B=64, one reference", "B=64, alternating: chunked (default)",
-            "B=64, alternating: whole batch (cpu_chunk_samples=0)"} <= set(res["batched_normalflow"])
+    batched = res["batched_normalflow"]
+    assert {"B=1", "B=8", "B=64", "B=64, one reference", "B=64, alternating: default",
+            "B=64, alternating: whole batch (cpu_chunk_samples=0)",
+            "B=64, alternating: no stall check (stall_check_iters=0)"} <= set(batched)
+    # the stall check only stops pairs that fail anyway: the same pairs pass, in fewer iterations
+    off = methods["normalflow_no_stall_check (stall_check_iters=0)"]["all"]["per_pair"]
+    assert off["ok"] == nf["all"]["per_pair"]["ok"]
+    with_check, without = batched["B=64, iterations summed: default, no stall check"]
+    assert with_check <= without
     caps = {(s["n_samples"], s["max_iters"]) for s in res["sweep"]}
     assert caps == {(k, c) for k in (250, 500, 1000, 3000, "all") for c in (10, 20, 50)}
 

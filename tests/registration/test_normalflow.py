@@ -297,6 +297,53 @@ def test_old_normalflow_mode(scene):
     assert (rot < 0.1).all() and (trans < 0.01).all()
 
 
+STALL_WRONG = [rigid(rz_deg=60), rigid(rz_deg=75), rigid(rz_deg=30, tx_mm=1.0)]  # fail from the identity
+STALL_RIGHT = [rigid(rz_deg=40), rigid(rz_deg=-40), rigid(tx_mm=-1.0, ty_mm=0.6)]  # converge from it
+
+
+@pytest.fixture(scope="module")
+def stall_pairs():
+    f = frames(bumpy(1), [EYE, *STALL_WRONG, *STALL_RIGHT])
+    return f[0], f[1:]
+
+
+class TestStallCheck:
+    """``stall_check_iters``: a pair in a wrong basin stops early with the failure it would
+    report at the iteration cap; pairs that converge, slowly or not, are untouched."""
+
+    def test_wrong_basins_stop_early_and_fail_as_at_the_cap(self, stall_pairs):
+        ref, tars = stall_pairs
+        n = len(STALL_WRONG)
+        off = register(ref, tars[:n], None, NormalFlowConfig(stall_check_iters=0))
+        on = register(ref, tars[:n], None, NormalFlowConfig(stall_check_iters=10))
+        assert not off.ok.any() and not on.ok.any()
+        assert (on.iterations < off.iterations).all() and (on.iterations % 10 == 0).all()
+        assert not on.converged.any()
+        # the reported scores are those of the pose it stopped at, and they fail there too
+        assert ((on.ccs < 0.85) | (on.scr < 0.3)).all()
+
+    def test_converging_pairs_are_untouched(self, stall_pairs):
+        """rz40 needs over 40 iterations from the identity: its CCS climbs, so it goes on."""
+        ref, tars = stall_pairs
+        right = tars[len(STALL_WRONG):]
+        off = register(ref, right, None, NormalFlowConfig(stall_check_iters=0))
+        on = register(ref, right, None, NormalFlowConfig(stall_check_iters=10))
+        assert off.ok.all() and int(off.iterations.max()) > 30
+        assert torch.equal(on.tar_T_ref, off.tar_T_ref) and torch.equal(on.iterations, off.iterations)
+
+    def test_off_without_score_checks(self, stall_pairs):
+        ref, tars = stall_pairs
+        cfg = NormalFlowConfig(check_scores=False)
+        a = register(ref, tars[:len(STALL_WRONG)], None, cfg)
+        b = register(ref, tars[:len(STALL_WRONG)], None, replace(cfg, stall_check_iters=0))
+        assert torch.equal(a.iterations, b.iterations) and torch.equal(a.tar_T_ref, b.tar_T_ref)
+
+    def test_negative_interval_is_an_error(self, stall_pairs):
+        ref, tars = stall_pairs
+        with pytest.raises(RegistrationError, match="stall_check_iters"):
+            register(ref, tars[:1], None, NormalFlowConfig(stall_check_iters=-1))
+
+
 class TestFallback:
     """Pairs that fail are solved again through coarse levels (``fallback_factors``)."""
 
