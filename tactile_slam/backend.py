@@ -244,7 +244,8 @@ class BackEnd:
         near = self._near_m() if self.config.loop.probes else None
         inits = torch.cat([starts(se3.inverse(loops[i].ref_T_tar.double()), fp.centre, fp.radius, near) for i in check])
         S = len(inits) // len(check)
-        res = self.detector.verify(kf, [self.keyframes[loops[i].ref_id] for i in check for _ in range(S)], inits)
+        res = self.detector.verify(kf, [self.keyframes[loops[i].ref_id] for i in check for _ in range(S)], inits,
+                                   exhaustive=True)
         q_T_c = res.tar_T_ref.double().cpu().reshape(len(check), S, 4, 4)
         ok, ccs, scr = (x.cpu().reshape(len(check), S) for x in (res.ok, res.ccs, res.scr))
         at = best(ok, ccs) if near is not None else torch.zeros(len(check), dtype=torch.long)
@@ -325,7 +326,7 @@ class BackEnd:
         q, c = (y, x) if y_ref else (x, y)
         fq = self._footprint(q)
         inits = starts(se3.inverse(x_T_y) if y_ref else x_T_y, fq.centre, fq.radius, self._near_m())
-        res = self.detector.verify(self.keyframes[q], [self.keyframes[c]] * len(inits), inits)
+        res = self.detector.verify(self.keyframes[q], [self.keyframes[c]] * len(inits), inits, exhaustive=True)
         q_T_c, ok, ccs = res.tar_T_ref.double().cpu(), res.ok.cpu(), res.ccs.cpu()
         at = best(ok[None], ccs[None])
         b = int(at[0])

@@ -346,9 +346,15 @@ class LoopDetector:
         self.stats.gated += len(dropped)
         return [r for r in cands if r not in dropped]
 
-    def verify(self, query: Keyframe, refs: Sequence[Keyframe], init_tar_T_ref: torch.Tensor) -> RegistrationResult:
+    def verify(self, query: Keyframe, refs: Sequence[Keyframe], init_tar_T_ref: torch.Tensor,
+               exhaustive: bool = False) -> RegistrationResult:
         """NormalFlow between the query and each candidate keyframe, in batches of
         ``loop.verify_batch`` pairs, with the loop CCS/SCR thresholds.
+
+        ``exhaustive``: every pair runs to convergence or ``max_iters`` (no stall check,
+        ``NormalFlowConfig.stall_check_iters``). For the question "does any other start
+        verify?" (:mod:`~tactile_slam.loop.ambiguity`, probes), where a slow alternative
+        that a stall check would stop must still count.
 
         The query is the one prepared reference of every batch (its samples, its CCS and
         SCR) and the candidates are the targets; the poses are returned the other way
@@ -369,11 +375,12 @@ class LoopDetector:
         t0 = time.perf_counter()
         prep = self._reference(query)
         step = self.config.loop.verify_batch
+        config = replace(self.nf_config, stall_check_iters=0) if exhaustive else self.nf_config
         out = []
         for a in range(0, len(refs), step):
             tar = full_batch([_stored_maps(kf) for kf in refs[a:a + step]]).to(prep.device)
             res = register_prepared(prep, tar, se3.inverse(init_tar_T_ref[a:a + step].double()).to(prep.device),
-                                    self.nf_config)
+                                    config)
             out.append(replace(res, tar_T_ref=se3.inverse(res.tar_T_ref.double())))
         self.stats.verified += len(refs)
         self.stats.time_verification += time.perf_counter() - t0

@@ -111,6 +111,23 @@ def test_loop_between_groups_on_a_texture_that_verifies_elsewhere_is_held():
     assert checked.stats.moved_loops == 0  # without probes the loop keeps its measurement
 
 
+def test_the_alternatives_are_verified_without_the_stall_check(monkeypatch):
+    """An alternative start that verifies only after a slow climb must still count, so the
+    check's batch (8 starts for the one loop between groups) verifies exhaustively, while
+    detection's own verification keeps the stall check."""
+    kfs, _ = _sessions(textured(0))
+    calls, verify = [], LoopDetector.verify
+
+    def spy(self, query, refs, init, exhaustive=False):
+        calls.append((len(refs), exhaustive))
+        return verify(self, query, refs, init, exhaustive)
+
+    monkeypatch.setattr(LoopDetector, "verify", spy)
+    be = _backend(kfs, True)
+    assert be.stats.ambiguous_loops == 1
+    assert (8, True) in calls and all(not exhaustive for n, exhaustive in calls if n != 8)
+
+
 def test_loop_between_groups_on_random_bumps_is_not_held():
     kfs, _ = _sessions(speckled(0))
     be = _backend(kfs, True)

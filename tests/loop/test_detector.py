@@ -134,6 +134,25 @@ def test_batch_verification_equals_per_pair(scene):
     torch.testing.assert_close(chunked.tar_T_ref, batch.tar_T_ref, atol=1e-7, rtol=0)
 
 
+def test_exhaustive_verification_runs_without_the_stall_check(scene):
+    """``exhaustive=True`` (the ambiguity check, probes) verifies with
+    ``stall_check_iters=0``: a start in a wrong basin that the default verification stops
+    at a check runs on to the cap, and every pair matches a direct registration without
+    the check."""
+    det = _detector(scene)
+    refs = [scene[0]] * 3
+    init = torch.stack([T_LOOP @ rigid(rz_deg=a) for a in (0, 90, 180)])  # the truth, a quarter and a half turn off
+    quick = det.verify(scene[2], refs, init)
+    full = det.verify(scene[2], refs, init, exhaustive=True)
+    direct = register(scene[2].frame, Frame.cat([r.frame for r in refs]), se3.inverse(init),
+                      replace(det.nf_config, stall_check_iters=0))
+    torch.testing.assert_close(full.tar_T_ref, se3.inverse(direct.tar_T_ref.double()), atol=1e-9, rtol=0)
+    assert full.iterations.tolist() == direct.iterations.tolist()
+    assert bool(quick.ok[0]) and bool(full.ok[0])  # the truth verifies either way
+    stopped = ~quick.ok & (quick.iterations < full.iterations)
+    assert bool(stopped.any())  # some wrong start was stopped early by default, not exhaustively
+
+
 def test_verification_uses_the_query_as_reference(scene):
     """Verification registers the query (reference, prepared once) to the candidates
     (targets) and returns the candidates' ``query_T_candidate``: the same as registering
