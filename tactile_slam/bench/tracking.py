@@ -32,6 +32,11 @@ recall is over the ground-truth loops among the run's keyframes (pairs >= 25 fra
 apart whose true contact patches overlap by >= 5 mm^2). Times are per-episode medians
 (ms per frame per stage, ms per keyframe for the back end), then the median over
 episodes.
+
+The JSON's ``results.runs`` lists each command that contributed (settings, date,
+machine, tables, wall time): with ``--append`` a command adds its tables to the report at
+``--out`` instead of replacing it, so several commands with different settings (the
+gradient set at 500 frames, the image set, the contact-loss set) make one report.
 """
 
 from __future__ import annotations
@@ -46,7 +51,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from tactile_slam.bench.common import median_per_key, set_threads, write_json
+from tactile_slam.bench.common import machine_info, median_per_key, set_threads, write_json
 from tactile_slam.cli.eval import evaluate_run
 from tactile_slam.config import Config
 from tactile_slam.eval.loop_metrics import gt_loop_pairs, loop_precision_recall
@@ -88,6 +93,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--work", default=None, help="run output folder (default: a temporary folder)")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
     p.add_argument("--png", default=None, help="plot path (default: the JSON path with .png)")
+    p.add_argument("--append", action="store_true",
+                   help="merge this run into the JSON at --out: its tables and episodes replace those of the "
+                        "same name, the others stay, and the targets are recomputed (several commands, one report)")
 
 
 @dataclass(frozen=True)
@@ -407,8 +415,42 @@ def plot(path: Path, summary: dict) -> None:
 # ------------------------------------------------------------------ entry point
 
 
+def previous_results(path: Path) -> dict | None:
+    """The results of an earlier ``bench tracking`` JSON at ``path`` to merge into
+    (``--append``), or ``None`` if there is no file. Raises :class:`BenchConfigError`
+    for a file this benchmark did not write."""
+    if not path.exists():
+        return None
+    try:
+        doc = json.loads(path.read_text())
+        res = doc["results"]
+        ok = doc.get("benchmark") == "tracking" and all(k in res for k in ("runs", "summary", "episodes"))
+    except (ValueError, KeyError, TypeError):
+        ok = False
+    if not ok:
+        raise BenchConfigError(f"--append: {path} is not a tracking benchmark JSON of this version "
+                               "(runs, summary, episodes); write to another --out")
+    return res
+
+
+def merge_results(old: dict | None, new: dict) -> dict:
+    """``new`` results merged into ``old`` ones: summary tables and episodes of ``new``
+    replacing those of the same key or name, ``runs`` keeping the earlier runs that still
+    contribute a table, the targets recomputed on the merged summary. ``old`` ``None``:
+    ``new`` as it is."""
+    if old is None:
+        return new
+    names = {e["name"] for e in new["episodes"]}
+    summary = {**old["summary"], **new["summary"]}
+    runs = [r for r in old["runs"] if set(r["tables"]) - set(new["summary"])] + new["runs"]
+    return {**new, "runs": runs, "summary": summary, "targets": targets(summary),
+            "episodes": [e for e in old["episodes"] if e["name"] not in names] + new["episodes"]}
+
+
 def run(args) -> Path:
     set_threads(args.threads)
+    out_path = Path(args.out)
+    old = previous_results(out_path) if args.append else None  # checked before any work
     config = Config()
     specs = episode_specs(args)
     cache = Path(args.cache)
@@ -435,8 +477,11 @@ def run(args) -> Path:
         if tmp is not None:
             tmp.cleanup()
     summary = summarise(episodes, errors)
-    results = {
-        "settings": {k: v for k, v in vars(args).items() if k != "func"},
+    run_info = {"settings": {k: v for k, v in vars(args).items() if k != "func"},
+                "date": time.strftime("%Y-%m-%dT%H:%M:%S"), "machine": machine_info(),
+                "tables": sorted(summary), "total_wall_s": time.perf_counter() - t_start}
+    results = merge_results(old, {
+        "runs": [run_info],
         "pooling": "per object: errors pooled over all scored frames of all seeds (NormalFlow's scripts); "
                    f"mean_over_objects: plain mean of the per-object values excluding {list(EXCLUDED_FROM_MEAN)}",
         "baseline_driver": "frame-to-frame like NF: frame i-1 -> i from the identity, composed; failure keeps "
@@ -445,9 +490,8 @@ def run(args) -> Path:
         "summary": summary,
         "targets": targets(summary),
         "episodes": episodes,
-        "total_wall_s": time.perf_counter() - t_start,
-    }
-    out = write_json(args.out, "tracking", results)
+    })
+    out = write_json(out_path, "tracking", results)
     print(table_iv(summary))
-    plot(Path(args.png) if args.png else out.with_suffix(".png"), summary)
+    plot(Path(args.png) if args.png else out.with_suffix(".png"), results["summary"])
     return out

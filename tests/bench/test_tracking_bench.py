@@ -69,6 +69,35 @@ def test_tiny_run_writes_finite_report(tmp_path):
     assert path.name == spec.name and time.perf_counter() - t0 < 2.0
 
 
+def test_append_merges_runs_into_one_report(tmp_path):
+    """Two commands, the second with --append: one report with both runs, both tables, the
+    episodes of both, and targets recomputed on the merged summary; a rerun of a table
+    replaces its episodes and its run instead of adding copies; a file of another benchmark
+    is refused."""
+    common = ["--objects", "seed", "--seeds", "0", "--frames", "40", "--work", str(tmp_path / "runs")]
+    first = tracking.run(parse(tmp_path, *common, "--methods", "nf-kf", "--protocol", "tracking",
+                               "--level", "gradients"))
+    alone = json.loads(first.read_text())["results"]
+    args = parse(tmp_path, *common, "--protocol", "contact_loss", "--loss-objects", "seed", "--loss-frames", "60",
+                 "--loss-methods", "nf-kf", "--append")
+    res = json.loads(tracking.run(args).read_text())["results"]
+    assert [r["tables"] for r in res["runs"]] == [["tracking/gradients"], ["contact_loss/gradients"]]
+    assert res["runs"][1]["settings"]["append"] and set(res["runs"][0]["machine"]) >= {"cpu", "cores"}
+    assert set(res["summary"]) == {"tracking/gradients", "contact_loss/gradients"}
+    assert res["summary"]["tracking/gradients"] == alone["summary"]["tracking/gradients"]
+    assert [e["table"] for e in res["episodes"]] == ["tracking/gradients", "contact_loss/gradients"]
+    assert res["targets"] == tracking.targets(res["summary"])
+    again = json.loads(tracking.run(args).read_text())["results"]
+    assert [r["tables"] for r in again["runs"]] == [["tracking/gradients"], ["contact_loss/gradients"]]
+    assert again["runs"][1]["date"] >= res["runs"][1]["date"] and len(again["episodes"]) == 2
+    other = tmp_path / "other.json"
+    other.write_text(json.dumps({"benchmark": "loops", "results": {}}))
+    with pytest.raises(tracking.BenchConfigError, match="--append"):
+        tracking.run(parse(tmp_path, *common, "--append", "--methods", "nf-kf", "--protocol", "tracking",
+                           "--level", "gradients", "--out", str(other)))
+    assert json.loads(other.read_text()) == {"benchmark": "loops", "results": {}}  # untouched
+
+
 def _summary(rot: dict) -> dict:
     """A gradient-level summary with the given rotation MAE per method and object."""
     return {"tracking/gradients": {m: {"objects": {o: {"rot_deg": r, "trans_mm": 0.1} for o, r in per.items()},
