@@ -193,6 +193,21 @@ class NormalFlowConfig:
     cpu_chunk_samples: int = 48_000
     stall_check_iters: int = 10
 
+    def check(self, shape: tuple[int, int] | None = None) -> None:
+        """Raise :class:`ConfigError` naming the first invalid setting. ``shape`` ``(H, W)``:
+        the coarse and fallback factors must also divide the image size."""
+        if self.jacobian not in ("analytic", "autograd"):
+            raise ConfigError(f"normalflow.jacobian must be one of ('analytic', 'autograd'), got {self.jacobian!r}")
+        if self.max_iters < 1 or self.min_iters < 1 or self.coarse_max_iters < 1:
+            raise ConfigError("normalflow.max_iters, min_iters and coarse_max_iters must be >= 1")
+        for name in ("cpu_chunk_samples", "stall_check_iters", "lm_damping"):
+            if getattr(self, name) < 0:
+                raise ConfigError(f"normalflow.{name} must be >= 0, got {getattr(self, name)}")
+        for name in ("coarse_factors", "fallback_factors"):
+            for f in getattr(self, name):
+                if f < 2 or (shape is not None and (shape[0] % f or shape[1] % f)):
+                    raise ConfigError(f"normalflow.{name} must be >= 2 and divide the image size, got {f}")
+
 
 @dataclass
 class TrackingConfig:
@@ -443,6 +458,7 @@ class Config:
             raise ConfigError("sensor.background_frames must be >= 1")
         if self.curvature.blur_ksize % 2 != 1:
             raise ConfigError("curvature.blur_ksize must be odd")
+        self.normalflow.check()  # the factors are checked against the frames' size when they register
 
 
 def _update(obj: Any, values: dict[str, Any], section: str) -> Any:

@@ -86,6 +86,11 @@ def test_own_layout_roundtrip(tmp_path):
         ("normalflow: {coarse_factors: 4}", r"normalflow.coarse_factors must be a list"),
         ("normalflow: {coarse_factors: [4, x]}", r"normalflow.coarse_factors\[1\] must be of type int"),
         ("sensor: {name: 3}", r"sensor.name must be of type str"),
+        # NormalFlow's ranges are checked at load, before any frame is read
+        ("normalflow: {stall_check_iters: -3}", r"normalflow.stall_check_iters must be >= 0, got -3"),
+        ("normalflow: {max_iters: 0}", r"normalflow.max_iters, min_iters and coarse_max_iters must be >= 1"),
+        ("normalflow: {jacobian: numeric}", r"normalflow.jacobian must be one of"),
+        ("normalflow: {fallback_factors: [1]}", r"normalflow.fallback_factors must be >= 2"),
     ],
 )
 def test_bad_configs(tmp_path, text, match):

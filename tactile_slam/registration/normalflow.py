@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from scipy.linalg.lapack import dposv
 
-from tactile_slam.config import NormalFlowConfig
+from tactile_slam.config import ConfigError, NormalFlowConfig
 from tactile_slam.geometry.frame import Frame
 from tactile_slam.geometry.morphology import as_weights
 from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
@@ -152,20 +152,11 @@ def _target_error(what: str) -> RegistrationError:
 
 
 def _check_config(config: NormalFlowConfig, shape: tuple[int, int] | None = None) -> None:
-    if config.jacobian not in JACOBIANS:
-        raise RegistrationError(f"normalflow.jacobian must be one of {tuple(JACOBIANS)}, got {config.jacobian!r}")
-    if config.max_iters < 1 or config.min_iters < 1 or config.coarse_max_iters < 1:
-        raise RegistrationError("normalflow.max_iters, min_iters and coarse_max_iters must be >= 1")
-    if config.cpu_chunk_samples < 0:
-        raise RegistrationError(f"normalflow.cpu_chunk_samples must be >= 0, got {config.cpu_chunk_samples}")
-    if config.stall_check_iters < 0:
-        raise RegistrationError(f"normalflow.stall_check_iters must be >= 0, got {config.stall_check_iters}")
-    if config.lm_damping < 0:
-        raise RegistrationError(f"normalflow.lm_damping must be >= 0, got {config.lm_damping}")
-    for name in ("coarse_factors", "fallback_factors"):
-        for f in getattr(config, name):
-            if f < 2 or (shape is not None and (shape[0] % f or shape[1] % f)):
-                raise RegistrationError(f"normalflow.{name} must be >= 2 and divide the image size, got {f}")
+    """:meth:`NormalFlowConfig.check`, raised as a :class:`RegistrationError`."""
+    try:
+        config.check(shape)
+    except ConfigError as exc:
+        raise RegistrationError(str(exc)) from None
 
 
 def metric_points(height: torch.Tensor, idx: torch.Tensor, m_per_px: float) -> torch.Tensor:
