@@ -133,6 +133,10 @@ class CurvatureConfig:
     clip: float = 0.7
 
 
+JACOBIAN_KINDS = ("analytic", "autograd")
+"""``NormalFlowConfig.jacobian`` values (``registration.jacobian``'s closed form and torch.func)."""
+
+
 @dataclass
 class NormalFlowConfig:
     """NormalFlow registration parameters (method.md section 4).
@@ -196,8 +200,8 @@ class NormalFlowConfig:
     def check(self, shape: tuple[int, int] | None = None) -> None:
         """Raise :class:`ConfigError` naming the first invalid setting. ``shape`` ``(H, W)``:
         the coarse and fallback factors must also divide the image size."""
-        if self.jacobian not in ("analytic", "autograd"):
-            raise ConfigError(f"normalflow.jacobian must be one of ('analytic', 'autograd'), got {self.jacobian!r}")
+        if self.jacobian not in JACOBIAN_KINDS:
+            raise ConfigError(f"normalflow.jacobian must be one of {JACOBIAN_KINDS}, got {self.jacobian!r}")
         if self.max_iters < 1 or self.min_iters < 1 or self.coarse_max_iters < 1:
             raise ConfigError("normalflow.max_iters, min_iters and coarse_max_iters must be >= 1")
         for name in ("cpu_chunk_samples", "stall_check_iters", "lm_damping"):

@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from scipy.linalg.lapack import dposv
 
-from tactile_slam.config import ConfigError, NormalFlowConfig
+from tactile_slam.config import JACOBIAN_KINDS, ConfigError, NormalFlowConfig
 from tactile_slam.geometry.frame import Frame
 from tactile_slam.geometry.morphology import as_weights
 from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
@@ -34,7 +34,7 @@ from tactile_slam.registration.result import RegistrationError, RegistrationResu
 from tactile_slam.registration.sampling import nonzero_2d, select_samples
 from tactile_slam.registration.shift import correlation_shift
 
-JACOBIANS = {"analytic": jacobian_analytic, "autograd": jacobian_autograd}
+JACOBIANS = dict(zip(JACOBIAN_KINDS, (jacobian_analytic, jacobian_autograd)))
 
 
 @dataclass

@@ -96,6 +96,12 @@ def test_append_merges_runs_into_one_report(tmp_path):
         tracking.run(parse(tmp_path, *common, "--append", "--methods", "nf-kf", "--protocol", "tracking",
                            "--level", "gradients", "--out", str(other)))
     assert json.loads(other.read_text()) == {"benchmark": "loops", "results": {}}  # untouched
+    broken = tmp_path / "broken.json"
+    broken.write_text("{not json")
+    with pytest.raises(tracking.BenchConfigError, match="not a tracking benchmark JSON"):
+        tracking.run(parse(tmp_path, *common, "--append", "--methods", "nf-kf", "--protocol", "tracking",
+                           "--level", "gradients", "--out", str(broken)))
+    assert broken.read_text() == "{not json"
 
 
 def _summary(rot: dict) -> dict:
