@@ -42,11 +42,16 @@ class GradientMLP(nn.Module):
             self.add_module(f"fc{i + 1}", nn.Linear(sizes[i], sizes[i + 1]))
         self.n_layers = len(sizes) - 1
 
+    @property
+    def layers(self) -> list[nn.Linear]:
+        """The linear layers in order (a ReLU follows each but the last)."""
+        return [getattr(self, f"fc{i}") for i in range(1, self.n_layers + 1)]
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         """``(N, 5)`` -> ``(N, 2)`` angles in rad."""
-        for i in range(1, self.n_layers):
-            x = torch.relu(getattr(self, f"fc{i}")(x))
-        return getattr(self, f"fc{self.n_layers}")(x)
+        for layer in self.layers[:-1]:
+            x = torch.relu(layer(x))
+        return self.layers[-1](x)
 
 
 def check_chunk_pixels(value: int) -> int:
@@ -71,6 +76,47 @@ def map_rows(fn, x: torch.Tensor, rows: int) -> torch.Tensor:
     return out
 
 
+@torch.no_grad()
+def mlp_rows(layers: list[nn.Linear], x: torch.Tensor, rows: int) -> torch.Tensor:
+    """Inference of ``Linear -> ReLU -> ... -> Linear`` over the rows of ``x``, at most
+    ``rows`` at a time (``0``: all at once).
+
+    Each hidden layer writes into one buffer of ``rows`` rows that every chunk reuses,
+    and its ReLU runs in place: on the CPU a new tensor per chunk and layer, and the
+    extra pass of an out-of-place ReLU, cost more than the products themselves
+    (``docs/calibration.md``, "Decoding speed"). Equal to the module's forward to
+    rounding.
+
+    Args:
+        layers: the linear layers in order.
+        x: ``(N, C_in)``.
+        rows: chunk size, ``>= 0``.
+
+    Returns:
+        ``(N, C_out)``.
+    """
+    n = len(x)
+    step = min(rows or n, n)
+    out = x.new_empty(n, layers[-1].out_features)
+    if n == 0:
+        return out
+    buffers = [x.new_empty(step, layer.out_features) for layer in layers[:-1]]
+    for i in range(0, n, step):
+        h = x[i:i + step]
+        k = len(h)
+        for layer, buf in zip(layers[:-1], buffers):
+            h = torch.addmm(layer.bias, h, layer.weight.t(), out=buf[:k]).relu_()
+        torch.addmm(layers[-1].bias, h, layers[-1].weight.t(), out=out[i:i + k])
+    return out
+
+
+def pixel_grid(h: int, w: int, device: torch.device | str = "cpu") -> torch.Tensor:
+    """Normalised pixel positions ``(x/W, y/H)``: ``(H, W, 2)`` float32."""
+    xs = (torch.arange(w, device=device, dtype=torch.float32) / w).expand(h, w)
+    ys = (torch.arange(h, device=device, dtype=torch.float32) / h)[:, None].expand(h, w)
+    return torch.stack([xs, ys], dim=-1)
+
+
 def pixel_features(bgr: torch.Tensor) -> torch.Tensor:
     """Per-pixel model input from raw BGR images.
 
@@ -82,9 +128,7 @@ def pixel_features(bgr: torch.Tensor) -> torch.Tensor:
     """
     b, h, w, _ = bgr.shape
     col = bgr.float() / 255.0
-    xs = (torch.arange(w, device=bgr.device, dtype=torch.float32) / w).expand(b, h, w)
-    ys = (torch.arange(h, device=bgr.device, dtype=torch.float32) / h)[:, None].expand(b, h, w)
-    return torch.cat([col, xs[..., None], ys[..., None]], dim=-1)
+    return torch.cat([col, pixel_grid(h, w, bgr.device).expand(b, h, w, 2)], dim=-1)
 
 
 def save_model(path: str | Path, model: GradientMLP, meta: dict[str, Any] | None = None) -> None:
@@ -159,7 +203,7 @@ class GradientDecoder:
         background: torch.Tensor,
         skip_color_dist: float = 4.0,
         max_angle: float = 1.4,
-        chunk_pixels: int = 16384,
+        chunk_pixels: int = 4096,
     ):
         if background.ndim != 3 or background.shape[-1] != 3:
             raise ValueError(f"background must be (H, W, 3), got {tuple(background.shape)}")
@@ -169,14 +213,16 @@ class GradientDecoder:
         self.skip_color_dist = float(skip_color_dist)
         self.max_angle = float(max_angle)
         self.chunk_pixels = check_chunk_pixels(chunk_pixels)
+        h, w = self.background.shape[:2]
+        self.grid = pixel_grid(h, w, self.device).reshape(h * w, 2)
         with torch.no_grad():
             feats = pixel_features(self.background[None])
-            self.bg_slopes = self._slopes(feats.reshape(-1, 5)).reshape(*self.background.shape[:2], 2)
+            self.bg_slopes = self._slopes(feats.reshape(-1, 5))
 
     def _slopes(self, feats: torch.Tensor) -> torch.Tensor:
         """``(N, 5)`` features -> ``(N, 2)`` slopes, ``chunk_pixels`` rows at a time."""
         rows = self.chunk_pixels if self.device.type == "cpu" else 0
-        return map_rows(lambda x: torch.tan(self.model(x).clamp(-self.max_angle, self.max_angle)), feats, rows)
+        return mlp_rows(self.model.layers, feats, rows).clamp_(-self.max_angle, self.max_angle).tan_()
 
     @torch.no_grad()
     def __call__(self, bgr: torch.Tensor, changed: torch.Tensor | None = None) -> torch.Tensor:
@@ -197,13 +243,10 @@ class GradientDecoder:
             changed = dilate(dist > self.skip_color_dist, 5)
         if changed is None:
             out = self._slopes(pixel_features(bgr).reshape(-1, 5)).reshape(b, h, w, 2)
-            return out - self.bg_slopes
-        flat = changed.reshape(-1).nonzero().squeeze(1)  # (N,) indices into B*H*W
-        pix = flat % (h * w)
-        feats = torch.empty(flat.shape[0], 5, device=self.device)
-        feats[:, :3] = bgr.reshape(-1, 3)[flat].float() / 255.0
-        feats[:, 3] = (pix % w).float() / w
-        feats[:, 4] = (pix // w).float() / h
-        out = torch.zeros(b * h * w, 2, device=self.device)
-        out[flat] = self._slopes(feats) - self.bg_slopes.reshape(-1, 2)[pix]
-        return out.reshape(b, h, w, 2)
+            return out - self.bg_slopes.reshape(h, w, 2)
+        flat = torch.nonzero(changed.reshape(-1)).squeeze(1)  # (N,) indices into B*H*W
+        pix = flat if b == 1 else flat % (h * w)
+        colour = bgr.reshape(-1, 3).index_select(0, flat).float().div_(255.0)
+        feats = torch.cat([colour, self.grid.index_select(0, pix)], dim=1)
+        slopes = self._slopes(feats).sub_(self.bg_slopes.index_select(0, pix))
+        return torch.zeros(b * h * w, 2, device=self.device).index_copy_(0, flat, slopes).reshape(b, h, w, 2)

@@ -1,4 +1,6 @@
+import kornia
 import numpy as np
+import pytest
 import torch
 
 from tactile_slam.geometry.curvature import curvature, divergence, normals_from_gradients
@@ -66,3 +68,28 @@ def test_curvature_gradcheck():
     g = torch.randn(1, 8, 9, 2, dtype=torch.float64, requires_grad=True) * 0.01
     m = torch.ones(1, 8, 9, dtype=torch.bool)
     assert torch.autograd.gradcheck(lambda x: curvature(x, m, clip=10.0), (g,))
+
+
+@pytest.mark.parametrize("ksize", [3, 5, 9])
+def test_curvature_window_equals_full_image(ksize, dtype, device):
+    """Only a window around the batch's contact is computed; every pixel equals the
+    full-image computation (divergence, blur over the whole image, mask, clip), to the
+    rounding of a convolution over another size, and outside contact exactly zero: contact
+    in the interior, against each border and in a corner, one pixel of contact, a frame
+    without contact beside frames with it, and a batch with none at all."""
+    g = torch.randn(5, 40, 56, 2, generator=torch.Generator().manual_seed(ksize), dtype=dtype).to(device) * 0.3
+    m = torch.zeros(5, 40, 56, dtype=torch.bool, device=device)
+    m[0, 12:20, 20:31] = True
+    m[1, 0:6, 40:56] = True
+    m[2, 30:40, 0:3] = True
+    m[3, 39, 55] = True
+    full = kornia.filters.gaussian_blur2d(divergence(g).unsqueeze(1), (ksize, ksize), (1.1, 1.1),
+                                          border_type="reflect").squeeze(1)
+    want = torch.where(m, full, torch.zeros_like(full)).clamp(-0.7, 0.7)
+    tol = 1e-12 if dtype == torch.float64 else 1e-6
+    for i in range(5):
+        got = curvature(g[i:i + 1], m[i:i + 1], ksize)
+        torch.testing.assert_close(got, want[i:i + 1], rtol=0, atol=tol)
+        assert (got[~m[i:i + 1]] == 0).all()
+    torch.testing.assert_close(curvature(g, m, ksize), want, rtol=0, atol=tol)
+    assert (curvature(g, torch.zeros_like(m), ksize) == 0).all()

@@ -7,6 +7,7 @@ from tactile_slam.calibration.model import (
     GradientMLP,
     load_model,
     map_rows,
+    mlp_rows,
     pixel_features,
     save_model,
 )
@@ -105,3 +106,20 @@ def test_map_rows_covers_every_row_once():
         assert torch.equal(out, torch.stack([x.sum(1), -x[:, 0]], 1)) and sum(seen) == 23
         assert max(seen) == min(rows or 23, 23)
     assert map_rows(lambda c: c[:, :2] * 2, x[:0], 4).shape == (0, 2)
+
+
+@pytest.mark.parametrize("hidden", [(32, 32, 32), (16,), (8, 24)])
+def test_mlp_rows_equals_the_module(hidden, dtype, device):
+    """The chunked inference with reused buffers and in-place ReLU gives the module's
+    forward (to rounding) for any chunk size, hidden widths that differ per layer, an
+    empty input, and leaves the parameters without gradients."""
+    torch.manual_seed(2)
+    m = GradientMLP(hidden).to(device, dtype)
+    x = torch.randn(1000, 5, dtype=dtype, device=device)
+    want = m(x).detach()
+    tol = 1e-12 if dtype == torch.float64 else 1e-5
+    for rows in (0, 1, 7, 256, 1000, 4096):
+        got = mlp_rows(m.layers, x, rows)
+        assert got.shape == (1000, 2) and got.dtype == dtype and not got.requires_grad
+        torch.testing.assert_close(got, want, rtol=tol, atol=tol)
+    assert mlp_rows(m.layers, x[:0], 16).shape == (0, 2)
