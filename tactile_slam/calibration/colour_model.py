@@ -19,7 +19,7 @@ from torch import nn
 from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet
 from tactile_slam.calibration.dataset import sphere_targets
 from tactile_slam.calibration.labels import PressLabel
-from tactile_slam.calibration.model import check_chunk_pixels, map_rows
+from tactile_slam.calibration.model import check_chunk_pixels, mlp_rows
 
 COLOUR_FORMAT_TAG = "tactile-slam-colour-model"
 
@@ -38,9 +38,18 @@ class _ColourMLP(nn.Module):
                 layers.append(nn.ReLU())
         self.net = nn.Sequential(*layers)
 
+    @property
+    def layers(self) -> list[nn.Linear]:
+        """The linear layers in order (a ReLU follows each but the last)."""
+        return [m for m in self.net if isinstance(m, nn.Linear)]
+
+    @staticmethod
+    def flat(x: torch.Tensor) -> torch.Tensor:
+        """The same pixels with zero angles: ``(N, 4)`` -> ``(N, 4)``."""
+        return torch.cat([torch.zeros_like(x[:, :2]), x[:, 2:]], dim=1)
+
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        flat = torch.cat([torch.zeros_like(x[:, :2]), x[:, 2:]], dim=1)
-        return self.net(x) - self.net(flat)
+        return self.net(x) - self.net(self.flat(x))
 
 
 class ColourModel:
@@ -50,11 +59,11 @@ class ColourModel:
         hidden: hidden layer sizes of the MLP.
         meta: free metadata stored with the model (sensor, image size, fit error).
         chunk_pixels: on the CPU the MLP runs over at most this many pixels at a time
-            (:func:`~tactile_slam.calibration.model.map_rows`; 0: all at once).
+            (:func:`~tactile_slam.calibration.model.mlp_rows`; 0: all at once).
     """
 
     def __init__(self, hidden: tuple[int, ...] = (64, 64), meta: dict[str, Any] | None = None,
-                 chunk_pixels: int = 8192):
+                 chunk_pixels: int = 4096):
         self.chunk_pixels = check_chunk_pixels(chunk_pixels)
         self.hidden = tuple(int(h) for h in hidden)
         self.net = _ColourMLP(self.hidden).eval()
@@ -87,7 +96,8 @@ class ColourModel:
         if not torch.isfinite(feats).all():
             raise ValueError("gradients contain NaN")
         rows = self.chunk_pixels if self.device.type == "cpu" else 0
-        return map_rows(self.net, feats.reshape(-1, 4), rows).reshape(*feats.shape[:3], 3)
+        x, layers = feats.reshape(-1, 4), self.net.layers
+        return (mlp_rows(layers, x, rows) - mlp_rows(layers, self.net.flat(x), rows)).reshape(*feats.shape[:3], 3)
 
     def save(self, path: str | Path) -> Path:
         path = Path(path)

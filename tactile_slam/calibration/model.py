@@ -61,21 +61,6 @@ def check_chunk_pixels(value: int) -> int:
     return value
 
 
-def map_rows(fn, x: torch.Tensor, rows: int) -> torch.Tensor:
-    """``fn`` over the rows of ``x`` ``(N, C)``, at most ``rows`` at a time (``0``: all at
-    once) -> ``(N, D)``. For per-pixel networks on the CPU: one product over a whole batch
-    of frames is memory-bound, while a chunk's layer outputs stay in cache."""
-    step = rows or len(x)
-    if len(x) <= step:
-        return fn(x)
-    first = fn(x[:step])
-    out = first.new_empty(len(x), *first.shape[1:])
-    out[:step] = first
-    for i in range(step, len(x), step):
-        out[i:i + step] = fn(x[i:i + step])
-    return out
-
-
 @torch.no_grad()
 def mlp_rows(layers: list[nn.Linear], x: torch.Tensor, rows: int) -> torch.Tensor:
     """Inference of ``Linear -> ReLU -> ... -> Linear`` over the rows of ``x``, at most

@@ -52,7 +52,7 @@ def dilate(mask: torch.Tensor, size: int, backend: str = "auto") -> torch.Tensor
     """
     if size <= 1:
         return mask
-    if _use_cv2(mask, backend):
+    if use_cv2(mask, backend):
         return _cv2_morph(mask, size, cv2.MORPH_DILATE, None)
     return _torch_dilate(mask, size, 0.0)
 
@@ -62,12 +62,14 @@ def erode(mask: torch.Tensor, size: int, border_is_contact: bool = True, backend
     ``False`` treats out-of-image pixels as non-contact. ``(B, H, W)`` bool -> same."""
     if size <= 1:
         return mask
-    if _use_cv2(mask, backend):
+    if use_cv2(mask, backend):
         return _cv2_morph(mask, size, cv2.MORPH_ERODE, None if border_is_contact else 0)
     return ~_torch_dilate(~mask, size, 0.0 if border_is_contact else 1.0)
 
 
-def _use_cv2(mask: torch.Tensor, backend: str) -> bool:
+def use_cv2(mask: torch.Tensor, backend: str) -> bool:
+    """Whether a ``backend`` setting (``"auto"``, ``"torch"`` or ``"cv2"``) picks OpenCV for
+    ``mask``: ``"auto"`` does on the CPU."""
     if backend not in ("auto", "torch", "cv2"):
         raise ValueError(f"backend must be 'auto', 'torch' or 'cv2', got {backend!r}")
     if backend == "auto":
@@ -82,7 +84,7 @@ def fill_holes(mask: torch.Tensor, backend: str = "auto") -> torch.Tensor:
     geodesic reconstruction of the border-connected background by repeated 3x3
     cross dilation until it stops changing.
     """
-    if _use_cv2(mask, backend):
+    if use_cv2(mask, backend):
         src = mask.to(torch.uint8).numpy()
         out = np.empty_like(src)
         for i in range(src.shape[0]):

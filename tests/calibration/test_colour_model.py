@@ -28,6 +28,10 @@ def test_chunks_give_the_same_colours():
     whole.net.load_state_dict(model.net.state_dict())
     ref = whole(g)
     assert ref.abs().sum() > 0
+    with torch.no_grad():  # the module's own forward, independent of the chunked inference
+        direct = model.net(ColourModel.features(g).reshape(-1, 4)).reshape(3, 10, 13, 3)
+    torch.testing.assert_close(ref, direct, rtol=1e-6, atol=1e-6)
+    assert (model(torch.zeros(1, 10, 13, 2)) == 0).all()
     for chunk in (1, 37, 390, 10 ** 6):
         model.chunk_pixels = chunk
         torch.testing.assert_close(model(g), ref, rtol=1e-6, atol=1e-6)

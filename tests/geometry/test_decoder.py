@@ -6,7 +6,6 @@ from tactile_slam.calibration.model import (
     GradientDecoder,
     GradientMLP,
     load_model,
-    map_rows,
     mlp_rows,
     pixel_features,
     save_model,
@@ -94,18 +93,6 @@ def test_decoder_chunks_give_identical_gradients(skip):
 def test_decoder_bad_chunk(chunk):
     with pytest.raises(ValueError, match="chunk_pixels"):
         GradientDecoder(GradientMLP(), torch.zeros(24, 32, 3), chunk_pixels=chunk)
-
-
-def test_map_rows_covers_every_row_once():
-    """Each row goes through ``fn`` exactly once, in order, whatever the chunk size; an
-    empty input and ``rows=0`` (all at once) work."""
-    x = torch.arange(23, dtype=torch.float64)[:, None].repeat(1, 3)
-    for rows in (0, 1, 5, 23, 100):
-        seen = []
-        out = map_rows(lambda c: (seen.append(len(c)), torch.stack([c.sum(1), -c[:, 0]], 1))[1], x, rows)
-        assert torch.equal(out, torch.stack([x.sum(1), -x[:, 0]], 1)) and sum(seen) == 23
-        assert max(seen) == min(rows or 23, 23)
-    assert map_rows(lambda c: c[:, :2] * 2, x[:0], 4).shape == (0, 2)
 
 
 @pytest.mark.parametrize("hidden", [(32, 32, 32), (16,), (8, 24)])

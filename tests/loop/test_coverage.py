@@ -48,18 +48,26 @@ def pose(dx_px=0.0, dy_px=0.0, dz_m=0.0, flip=False) -> torch.Tensor:
 # ------------------------------------------------------------------ weights
 
 
-def test_distance_matches_scipy_with_border_as_background(device):
+@pytest.mark.parametrize("backend", ["auto", "torch", "cv2"])
+def test_distance_matches_scipy_with_border_as_background(device, backend):
+    """Both backends (OpenCV's EDT, the separable one in torch) against scipy: random
+    holes, a contact against two borders, the clamp, and a frame without contact."""
     g = torch.Generator().manual_seed(1)
-    mask = torch.rand(2, 40, 50, generator=g) > 0.05
+    mask = torch.rand(3, 40, 50, generator=g) > 0.05
     mask[1] = False
     mask[1, 5:40, 0:30] = True  # touches the bottom and left borders
-    d = distance_to_background(mask.to(device), 1000.0).cpu().numpy()
-    for i in range(2):
+    mask[2] = False
+    d = distance_to_background(mask.to(device), 1000.0, backend)
+    assert d.shape == (3, 40, 50) and d.dtype == torch.float32 and d.device == mask.to(device).device
+    d = d.cpu().numpy()
+    for i in range(3):
         ref = distance_transform_edt(np.pad(mask[i].numpy(), 1))[1:-1, 1:-1]
         np.testing.assert_allclose(d[i], ref, atol=1e-5)
-    clamped = distance_to_background(mask.to(device), 3.0).cpu().numpy()
+    clamped = distance_to_background(mask.to(device), 3.0, backend).cpu().numpy()
     ref = np.minimum(distance_transform_edt(np.pad(mask[1].numpy(), 1))[1:-1, 1:-1], 3.0)
     np.testing.assert_allclose(clamped[1], ref, atol=1e-5)
+    with pytest.raises(ValueError, match="backend"):
+        distance_to_background(mask.to(device), 3.0, "scipy")
 
 
 def test_boundary_weights_values_and_shapes(device):
