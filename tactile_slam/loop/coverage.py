@@ -217,21 +217,24 @@ def lookup_bilinear(buffers: Sequence[torch.Tensor], slots: torch.Tensor, cr: to
     computed once for all buffers. ``(S, H * W)`` each, ``(P,)``, ``(P, N, 2)`` ->
     one ``(P, N)`` per buffer."""
     h, w = shape
-    rows = slots.view(-1, 1) * (h * w)
     c0 = torch.floor(cr[..., 0])
     r0 = torch.floor(cr[..., 1])
     fc = cr[..., 0] - c0
     fr = cr[..., 1] - r0
     c0 = c0.long()
     r0 = r0.long()
+    # the two columns and two rows of the corners, clamped, with their in-image tests
+    # (a corner is in the image when its row and its column are)
+    base = slots.view(-1, 1) * (h * w)
+    cols = [(c0.clamp(0, w - 1), (c0 >= 0) & (c0 < w)), ((c0 + 1).clamp_(0, w - 1), (c0 >= -1) & (c0 < w - 1))]
+    rows = [(r0.clamp(0, h - 1).mul_(w).add_(base), (r0 >= 0) & (r0 < h)),
+            ((r0 + 1).clamp_(0, h - 1).mul_(w).add_(base), (r0 >= -1) & (r0 < h - 1))]
     flats = [b.reshape(-1) for b in buffers]
     out = [torch.zeros_like(fc, dtype=b.dtype) for b in buffers]
     for dr, dc, wt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
-        r = r0 + dr
-        c = c0 + dc
-        inside = (c >= 0) & (c < w) & (r >= 0) & (r < h)
-        idx = rows + r.clamp(0, h - 1) * w + c.clamp(0, w - 1)
-        wt = wt * inside
+        (r, r_in), (c, c_in) = rows[dr], cols[dc]
+        idx = r + c
+        wt = wt * (r_in & c_in)
         out = [o + f.take(idx) * wt for o, f in zip(out, flats)]
     return out
 

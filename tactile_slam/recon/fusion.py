@@ -27,7 +27,7 @@ import torch.nn.functional as F
 
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in, mask_bounds, window_around
-from tactile_slam.loop.coverage import CoverageSet, pixel_coords, point_map
+from tactile_slam.loop.coverage import CoverageSet, pixel_coords, point_map, transform_points
 from tactile_slam.recon.mesh import TriMesh, grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -98,23 +98,21 @@ def keyframe_contact_box(keyframe: Keyframe) -> torch.Tensor:
     return torch.tensor([c0, c1, r0, r1], device=keyframe.maps.device)
 
 
-def project_into_box(n_T_t: torch.Tensor, points: torch.Tensor, box: torch.Tensor, m_per_px: float,
-                     shape: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
-    """Project keyframe t's points into keyframe n; keep those with a pixel of n's box
-    among their bilinear corners or as their nearest pixel (maps that are 0 outside
+def project_into_box(moved: torch.Tensor, box: torch.Tensor, m_per_px: float, shape: tuple[int, int]
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Keep keyframe t's points, moved into keyframe n's frame, that have a pixel of n's
+    box among their bilinear corners or as their nearest pixel (maps that are 0 outside
     the box read 0 for all others).
 
     Args:
-        n_T_t: ``(4, 4)`` float64 pose of t in n.
-        points: ``(N, 3)`` t's points, metres.
+        moved: ``(R, N)`` with ``R >= 2``: t's points in n's frame, channel-first
+            (:func:`~tactile_slam.loop.coverage.transform_points`), metres; rows ``x, y, ...``.
         box: ``(4,)`` from :func:`contact_box`.
 
     Returns:
         ``(M,)`` int64 indices of the kept points and their ``(M, 2)`` ``(col, row)`` in n.
     """
-    rot = n_T_t[:2, :3].to(points.dtype)
-    col, row = pixel_coords(points @ rot[0] + float(n_T_t[0, 3]), points @ rot[1] + float(n_T_t[1, 3]), m_per_px,
-                            shape)
+    col, row = pixel_coords(moved[0], moved[1], m_per_px, shape)
     b = box.tolist()
     i = ((col > b[0] - 1) & (col < b[1] + 1) & (row > b[2] - 1) & (row < b[3] + 1)).nonzero()[:, 0]
     return i, torch.stack([col[i], row[i]], dim=1)
@@ -156,15 +154,17 @@ def fuse(
         p = grid[sub_mask]  # (N, 3), row-major as over the full image
         w_t = coverage.weights(t)[rows, cols][sub_mask]
         pose_t = coverage.pose(t)
+        p_t = p.T.contiguous()  # channel-first for the projections
         owned = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
         shift = torch.zeros_like(p)
         total = w_t + 1e-8
         for n in coverage.neighbours(t):
             n_T_t = torch.linalg.solve(coverage.pose(n), pose_t)
+            moved = transform_points(n_T_t[None], p_t)[0]  # (3, N) in n's frame
             # only t's points that reach n's contact can read a non-zero weight
-            i, cr = project_into_box(n_T_t, p, boxes[n], s, coverage.shape)
+            i, cr = project_into_box(moved, boxes[n], s, coverage.shape)
             h_n, w_n, w_own = coverage.surface_at(n, cr)
-            slide = h_n * s - (p[i] @ n_T_t[2, :3].to(p.dtype) + n_T_t[2, 3])  # along n's z axis
+            slide = h_n * s - moved[2, i]  # along n's z axis
             near = slide.abs() <= gate
             w_n = w_n * near
             shift.index_add_(0, i, (w_n * slide).unsqueeze(1) * n_T_t[2, :3].to(p.dtype))

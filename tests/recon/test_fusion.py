@@ -14,7 +14,7 @@ from tests.recon.recon_oracle import sphere_keyframes
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import FrameBuilder, crop_to_contact
 from tactile_slam.recon import ReconError, fuse, merge_surfaces
-from tactile_slam.loop.coverage import lookup_bilinear, lookup_nearest
+from tactile_slam.loop.coverage import lookup_bilinear, lookup_nearest, transform_points
 from tactile_slam.recon.fusion import contact_box, grid_normals, keyframe_contact_box, project_into_box
 from tactile_slam.recon.mesh import grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
@@ -242,7 +242,7 @@ def test_box_projection_keeps_every_point_that_can_read_the_box():
                                      rng.uniform(-1, 0, 5000) * 1e-3], 1))
     n_T_t = shifted(dx_px=13.3)
     n_T_t[:3, :3] = torch.from_numpy(Rotation.from_rotvec([0.05, -0.1, 0.6]).as_matrix())
-    i, cr = project_into_box(n_T_t, pts, box, S, (H, W))
+    i, cr = project_into_box(transform_points(n_T_t[None], pts.T.contiguous())[0], box, S, (H, W))
     moved = pts @ n_T_t[:3, :3].T + n_T_t[:3, 3]
     all_cr = torch.stack([moved[:, 0] / S + (W - 1) / 2, moved[:, 1] / S + (H - 1) / 2], 1)
     torch.testing.assert_close(cr, all_cr[i])
