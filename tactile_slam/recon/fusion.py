@@ -171,7 +171,7 @@ def fuse(
             total.index_add_(0, i, w_n)
             # Ownership: the keyframe with the larger weight (deeper inside its contact,
             # at its nearest pixel) keeps a shared point; the later keyframe on ties.
-            beats = (w_own > w_t[i]) | ((w_own == w_t[i]) & (n > t))
+            beats = w_own >= w_t[i] if n > t else w_own > w_t[i]
             owned[i[(w_own > 0) & near & beats]] = False
         p = p + shift / total.unsqueeze(1)
         grid[sub_mask] = p
