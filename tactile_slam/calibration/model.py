@@ -180,6 +180,10 @@ class GradientDecoder:
             so that its layer outputs stay in cache (one product over the changed pixels
             of a batch of full frames is several times slower; ``docs/calibration.md``);
             ``0`` or another device: all at once. Results do not depend on it beyond rounding.
+
+    Attributes:
+        grid: ``(H * W, 2)`` normalised pixel positions ``(x/W, y/H)``, row-major.
+        bg_slopes: ``(H * W, 2)`` the background's slopes, row-major.
     """
 
     def __init__(
