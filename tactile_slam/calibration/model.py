@@ -17,6 +17,7 @@ from typing import Any
 import torch
 from torch import nn
 
+from tactile_slam.geometry.contact import colour_distance
 from tactile_slam.geometry.morphology import dilate
 
 FORMAT_TAG = "tactile-slam-calibration"
@@ -228,8 +229,7 @@ class GradientDecoder:
         bgr = bgr.to(self.device)
         b, h, w, _ = bgr.shape
         if changed is None and self.skip_color_dist > 0:
-            dist = torch.linalg.vector_norm(bgr.float() - self.background, dim=-1)
-            changed = dilate(dist > self.skip_color_dist, 5)
+            changed = dilate(colour_distance(bgr, self.background) > self.skip_color_dist, 5)
         if changed is None:
             out = self._slopes(pixel_features(bgr).reshape(-1, 5)).reshape(b, h, w, 2)
             return out - self.bg_slopes.reshape(h, w, 2)

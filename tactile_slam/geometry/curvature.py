@@ -5,7 +5,7 @@ from __future__ import annotations
 import kornia
 import torch
 
-from tactile_slam.geometry.morphology import as_weights
+from tactile_slam.geometry.morphology import as_weights, mask_bounds, window_around
 
 
 def normals_from_gradients(gradients: torch.Tensor) -> torch.Tensor:
@@ -27,18 +27,6 @@ def _central_diff(f: torch.Tensor, dim: int) -> torch.Tensor:
 def divergence(gradients: torch.Tensor) -> torch.Tensor:
     """``d gx/dx + d gy/dy`` by central differences. ``(B, H, W, 2)`` -> ``(B, H, W)``."""
     return _central_diff(gradients[..., 0], -1) + _central_diff(gradients[..., 1], -2)
-
-
-def _contact_window(contact: torch.Tensor, margin: int) -> tuple[slice, slice] | None:
-    """Rows and columns within ``margin`` pixels of the bounding box of every frame's
-    contact in ``(B, H, W)``, clipped to the image; ``None`` without contact."""
-    rows = torch.nonzero(contact.any(dim=(0, 2))).flatten()
-    if rows.numel() == 0:
-        return None
-    cols = torch.nonzero(contact.any(dim=(0, 1))).flatten()
-    (r0, r1), (c0, c1) = rows[[0, -1]].tolist(), cols[[0, -1]].tolist()
-    h, w = contact.shape[1:]
-    return slice(max(r0 - margin, 0), min(r1 + margin + 1, h)), slice(max(c0 - margin, 0), min(c1 + margin + 1, w))
 
 
 def curvature(
@@ -65,10 +53,11 @@ def curvature(
         ``(B, H, W)`` in 1/px.
     """
     out = torch.zeros(gradients.shape[:3], dtype=gradients.dtype, device=gradients.device)
-    window = _contact_window(contact, ksize // 2 + 1)
-    if window is None:
+    box = mask_bounds(contact.any(0))  # of every frame's contact
+    if box is None:
         return out
-    rows, cols = window
+    r0, r1, c0, c1 = box
+    rows, cols = window_around((r0, r1 - 1, c0, c1 - 1), ksize // 2 + 1, contact.shape[1:])
     div = divergence(gradients[:, rows, cols]).unsqueeze(1)
     blurred = kornia.filters.gaussian_blur2d(div, (ksize, ksize), (sigma, sigma), border_type="reflect")
     lap = blurred.squeeze(1) * as_weights(contact[:, rows, cols], blurred.dtype)

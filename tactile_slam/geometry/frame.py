@@ -14,7 +14,7 @@ from tactile_slam.calibration.model import GradientDecoder
 from tactile_slam.config import Config
 from tactile_slam.geometry.contact import colour_distance, colour_mask, contact_mask, zero_level
 from tactile_slam.geometry.curvature import curvature, normals_from_gradients
-from tactile_slam.geometry.morphology import dilate
+from tactile_slam.geometry.morphology import dilate, mask_bounds, window_around
 from tactile_slam.geometry.poisson import integrate_exact, integrate_legacy
 
 
@@ -170,15 +170,6 @@ def full_batch(parts: list[Frame | CroppedFrame]) -> Frame:
     return out
 
 
-def mask_bounds(mask: torch.Tensor) -> tuple[int, int, int, int] | None:
-    """Bounding box ``(r0, r1, c0, c1)`` (half-open) of a ``(H, W)`` bool mask, or ``None``."""
-    rows = torch.nonzero(mask.any(1)).flatten()
-    if rows.numel() == 0:
-        return None
-    cols = torch.nonzero(mask.any(0)).flatten()
-    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-
-
 def contact_bounds(part: Frame | CroppedFrame) -> tuple[int, int, int, int] | None:
     """Inclusive ``(row_min, row_max, col_min, col_max)`` of one frame's contact in
     full-image pixels (a cropped frame is not expanded), or ``None`` without contact."""
@@ -190,14 +181,6 @@ def contact_bounds(part: Frame | CroppedFrame) -> tuple[int, int, int, int] | No
         return None
     r0, r1, c0, c1 = box
     return r0 + top, r1 - 1 + top, c0 + left, c1 - 1 + left
-
-
-def window_around(bounds: tuple[int, int, int, int], margin: int, shape: tuple[int, int]) -> tuple[slice, slice]:
-    """Rows and columns within ``margin`` pixels of inclusive ``bounds`` (from
-    :func:`contact_bounds`), clipped to an image of ``shape`` ``(H, W)``."""
-    r0, r1, c0, c1 = bounds
-    h, w = shape
-    return slice(max(r0 - margin, 0), min(r1 + margin + 1, h)), slice(max(c0 - margin, 0), min(c1 + margin + 1, w))
 
 
 def height_and_contact_in(part: Frame | CroppedFrame, rows: slice, cols: slice) -> tuple[torch.Tensor, torch.Tensor]:

@@ -5,7 +5,9 @@ erosion of method.md section 3.2 treats them as non-contact. Both are provided.
 
 On CPU the work goes to OpenCV (one call per image, zero-copy, ~100x faster than
 torch's CPU max-pooling); on other devices it is a separable max-pool in torch. The
-two backends give identical results (tested).
+two backends give identical results (tested). The bounding box of a mask and a window
+around such a box (:func:`mask_bounds`, :func:`window_around`) are here too: the stages
+that work only near the contact share them.
 """
 
 from __future__ import annotations
@@ -105,3 +107,21 @@ def fill_holes(mask: torch.Tensor, backend: str = "auto") -> torch.Tensor:
         if torch.equal(grown, outside):
             return ~outside
         outside = grown
+
+
+def mask_bounds(mask: torch.Tensor) -> tuple[int, int, int, int] | None:
+    """Bounding box ``(r0, r1, c0, c1)`` (half-open) of a ``(H, W)`` bool mask, or ``None``."""
+    rows = torch.nonzero(mask.any(1)).flatten()
+    if rows.numel() == 0:
+        return None
+    cols = torch.nonzero(mask.any(0)).flatten()
+    return int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+
+
+def window_around(bounds: tuple[int, int, int, int], margin: int, shape: tuple[int, int]) -> tuple[slice, slice]:
+    """Rows and columns within ``margin`` pixels of inclusive ``bounds`` ``(r0, r1, c0, c1)``
+    (e.g. :func:`~tactile_slam.geometry.frame.contact_bounds`), clipped to an image of
+    ``shape`` ``(H, W)``."""
+    r0, r1, c0, c1 = bounds
+    h, w = shape
+    return slice(max(r0 - margin, 0), min(r1 + margin + 1, h)), slice(max(c0 - margin, 0), min(c1 + margin + 1, w))

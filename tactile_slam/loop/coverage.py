@@ -32,8 +32,8 @@ import torch
 import torch.nn.functional as F
 
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in, window_around
-from tactile_slam.geometry.morphology import use_cv2
+from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in
+from tactile_slam.geometry.morphology import mask_bounds, use_cv2, window_around
 from tactile_slam.tracking.keyframe import Keyframe
 
 # Points per projection chunk: bounds the memory of batched projections.
@@ -68,13 +68,11 @@ def distance_to_background(contact: torch.Tensor, max_distance: float, backend: 
     if contact.ndim != 3:
         raise CoverageError(f"contact must be (B, H, W), got {tuple(contact.shape)}")
     opencv = use_cv2(contact, backend)
-    rows_any = contact.any(dim=(0, 2)).nonzero()
-    cols_any = contact.any(dim=(0, 1)).nonzero()
-    if rows_any.numel() == 0:
+    box = mask_bounds(contact.any(0))
+    if box is None:
         return torch.zeros(contact.shape, dtype=torch.float32, device=contact.device)
     # Everything outside the contacts' bounding box is background: work on the crop.
-    r0, r1 = int(rows_any[0]), int(rows_any[-1]) + 1
-    c0, c1 = int(cols_any[0]), int(cols_any[-1]) + 1
+    r0, r1, c0, c1 = box
     if (r0, r1, c0, c1) != (0, contact.shape[1], 0, contact.shape[2]):
         out = torch.zeros(contact.shape, dtype=torch.float32, device=contact.device)
         out[:, r0:r1, c0:c1] = distance_to_background(contact[:, r0:r1, c0:c1], max_distance, backend)

@@ -26,7 +26,8 @@ import torch
 import torch.nn.functional as F
 
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in, mask_bounds, window_around
+from tactile_slam.geometry.frame import contact_bounds, height_and_contact_in
+from tactile_slam.geometry.morphology import mask_bounds, window_around
 from tactile_slam.loop.coverage import CoverageSet, pixel_coords, point_map, transform_points
 from tactile_slam.recon.mesh import TriMesh, grid_faces
 from tactile_slam.tracking.keyframe import Keyframe

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from tactile_slam.geometry.frame import mask_bounds
+from tactile_slam.geometry.morphology import mask_bounds
 from tactile_slam.geometry.morphology import erode
 from tactile_slam.loop.features import (
     FeatureError, Features, SiftSettings, curvature_features, curvature_image, image_features,
