@@ -81,6 +81,9 @@ def mlp_rows(layers: list[nn.Linear], x: torch.Tensor, rows: int) -> torch.Tenso
     Returns:
         ``(N, C_out)``.
     """
+    check_chunk_pixels(rows)
+    if x.ndim != 2 or x.shape[1] != layers[0].in_features:
+        raise ValueError(f"mlp_rows: x must be (N, {layers[0].in_features}), got {tuple(x.shape)}")
     n = len(x)
     step = min(rows or n, n)
     out = x.new_empty(n, layers[-1].out_features)

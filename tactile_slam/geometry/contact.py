@@ -49,6 +49,8 @@ def order_statistic(x: torch.Tensor, k: int) -> torch.Tensor:
     0.12-0.19 ms against 0.30-0.55 ms for ``torch.kthvalue``); elsewhere
     ``torch.kthvalue``.
     """
+    if x.ndim != 2 or not 0 <= k < x.shape[1]:
+        raise ValueError(f"order_statistic: need (B, N) rows and 0 <= k < N, got shape {tuple(x.shape)} and k = {k}")
     if x.device.type == "cpu":
         idx = torch.from_numpy(np.argpartition(x.detach().numpy(), k, axis=1)[:, k:k + 1])
     else:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from tactile_slam.geometry.contact import colour_distance, percentile, zero_level
+from tactile_slam.geometry.contact import colour_distance, order_statistic, percentile, zero_level
 
 
 def _rows(kind: str, n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -89,3 +89,19 @@ def test_colour_distance_matches_numpy(device):
         assert got.shape == (2, 6, 7) and got.dtype == torch.float32
         np.testing.assert_allclose(got.cpu().double().numpy(), want, rtol=1e-6, atol=1e-4)
     assert float(colour_distance(bg[None], bg).abs().max()) == 0.0
+
+
+def test_order_statistic_values_gradients_and_bad_input(device):
+    """Each row's k-th smallest value (numpy's sort as the oracle), the gradient on the
+    selected entry only, and a clear error for k outside the row or a tensor not 2-D."""
+    g = torch.Generator().manual_seed(7)
+    x = torch.randn(3, 50, generator=g, dtype=torch.float64).to(device).requires_grad_()
+    for k in (0, 17, 49):
+        got = order_statistic(x, k)
+        np.testing.assert_array_equal(got.detach().cpu().numpy(), np.sort(x.detach().cpu().numpy(), axis=1)[:, k])
+    order_statistic(x, 17).sum().backward()
+    assert torch.equal(x.grad.sum(1), torch.ones(3, dtype=torch.float64, device=x.device))
+    assert int((x.grad != 0).sum()) == 3
+    for bad_x, k in ((x.detach(), 50), (x.detach(), -1), (x.detach()[0], 3), (x.detach()[None], 3)):
+        with pytest.raises(ValueError, match="order_statistic"):
+            order_statistic(bad_x, k)

@@ -110,3 +110,16 @@ def test_mlp_rows_equals_the_module(hidden, dtype, device):
         assert got.shape == (1000, 2) and got.dtype == dtype and not got.requires_grad
         torch.testing.assert_close(got, want, rtol=tol, atol=tol)
     assert mlp_rows(m.layers, x[:0], 16).shape == (0, 2)
+
+
+def test_mlp_rows_bad_input():
+    """A negative or non-integer chunk, and rows of the wrong width or rank, are refused
+    with the problem named (a negative chunk would otherwise return unfilled rows)."""
+    m = GradientMLP()
+    x = torch.randn(10, 5)
+    for rows in (-1, 2.5, True):
+        with pytest.raises(ValueError, match="chunk_pixels"):
+            mlp_rows(m.layers, x, rows)
+    for bad in (torch.randn(10, 4), torch.randn(10), torch.randn(2, 10, 5)):
+        with pytest.raises(ValueError, match="mlp_rows"):
+            mlp_rows(m.layers, bad, 4)
