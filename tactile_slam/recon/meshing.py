@@ -52,34 +52,79 @@ def oriented_points(fused: Sequence[FusedKeyframe], min_weight: float
 _KEY_BITS = 21  # per axis: voxel indices in [-2^20, 2^20)
 
 
+def voxel_indices(points: torch.Tensor, voxel: float) -> torch.Tensor:
+    """Integer indices ``(i, j, k)`` of the cubic voxels (side ``voxel``, grid anchored
+    at the origin) holding ``(N, 3)`` points: ``(N, 3)`` int64. Raises
+    :class:`ReconError` for NaN or Inf and beyond 2^20 voxels from the origin (the
+    range :func:`voxel_keys` packs)."""
+    if not bool(torch.isfinite(points).all()):
+        raise ReconError("points to bin into voxels contain NaN or Inf")
+    idx = torch.floor(points / voxel).long()
+    half = 1 << (_KEY_BITS - 1)
+    if idx.numel() and int(idx.abs().max()) >= half:
+        raise ReconError(f"points lie more than {half} voxels of {voxel:g} from the origin")
+    return idx
+
+
+def pack_keys(idx: torch.Tensor) -> torch.Tensor:
+    """One int64 key per row of ``(N, 3)`` voxel indices from :func:`voxel_indices`,
+    ordered as the indices lexicographically: ``(N,)``."""
+    key = idx + (1 << (_KEY_BITS - 1))
+    return (key[:, 0] << (2 * _KEY_BITS)) | (key[:, 1] << _KEY_BITS) | key[:, 2]
+
+
 def voxel_keys(points: torch.Tensor, voxel: float) -> torch.Tensor:
     """One int64 key per cubic voxel (side ``voxel``, grid anchored at the origin) of
     ``(N, 3)`` points, ordered as the voxel indices ``(i, j, k)`` lexicographically.
     ``(N,)``; raises :class:`ReconError` for NaN or Inf and beyond 2^20 voxels from the origin."""
-    if not bool(torch.isfinite(points).all()):
-        raise ReconError("points to bin into voxels contain NaN or Inf")
-    key = torch.floor(points / voxel).long()
-    half = 1 << (_KEY_BITS - 1)
-    if key.numel() and int(key.abs().max()) >= half:
-        raise ReconError(f"points lie more than {half} voxels of {voxel:g} from the origin")
-    key = key + half
-    return (key[:, 0] << (2 * _KEY_BITS)) | (key[:, 1] << _KEY_BITS) | key[:, 2]
+    return pack_keys(voxel_indices(points, voxel))
+
+
+def bin_sums(idx: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sum ``(N, C)`` values per distinct row of ``(N, 3)`` voxel indices.
+
+    When the indices' bounding box has at most ``max(4 N, 4096)`` cells (points that
+    come from one keyframe's contact do), the sums go into that dense box and its
+    occupied cells are read in order; otherwise through :func:`torch.unique`. Both
+    give the same keys in the same (sorted) order and add each voxel's values in input
+    order, so the results are identical.
+
+    Returns:
+        ``(M,)`` sorted keys (:func:`pack_keys`) and their ``(M, C)`` sums.
+    """
+    n = idx.shape[0]
+    if n:
+        lo = idx.min(dim=0).values
+        dims = idx.max(dim=0).values - lo + 1
+        d = dims.tolist()
+        if d[0] * d[1] * d[2] <= max(4 * n, 4096):
+            local = idx - lo
+            lin = (local[:, 0] * d[1] + local[:, 1]) * d[2] + local[:, 2]
+            cells = d[0] * d[1] * d[2]
+            sums = values.new_zeros(cells, values.shape[1]).index_add_(0, lin, values)
+            hit = torch.zeros(cells, dtype=torch.bool, device=idx.device)
+            hit[lin] = True
+            occupied = hit.nonzero()[:, 0]
+            ijk = torch.stack([occupied // (d[1] * d[2]), occupied // d[2] % d[1], occupied % d[2]], dim=1)
+            return pack_keys(ijk + lo), sums[occupied]
+    uniq, inv = torch.unique(pack_keys(idx), return_inverse=True)
+    return uniq, values.new_zeros(uniq.shape[0], values.shape[1]).index_add_(0, inv, values)
 
 
 def voxel_sums(parts: Iterable[tuple[torch.Tensor, torch.Tensor]], voxel: float, chunk: int = 1 << 16
                ) -> torch.Tensor:
     """Sum values per cubic voxel (side ``voxel``, grid anchored at the origin) over
     parts of ``(N, 3)`` points with their ``(N, C)`` values: ``(M, C)`` sums, in the
-    order of :func:`voxel_keys`. Each part is summed ``chunk`` points at a time, then
-    the partial sums per voxel: fused points come keyframe by keyframe, so a chunk
-    covers few voxels and no sort or copy runs over all the points. No points at all
-    raise :class:`ReconError`."""
+    order of :func:`voxel_keys`. Each part is summed ``chunk`` points at a time
+    (:func:`bin_sums`), then the partial sums per voxel: fused points come keyframe by
+    keyframe, so a chunk covers few voxels and no sort or copy runs over all the points.
+    No points at all raise :class:`ReconError`."""
     keys, sums = [], []
     for points, values in parts:
         for a in range(0, points.shape[0], chunk):
-            uniq, inv = torch.unique(voxel_keys(points[a:a + chunk], voxel), return_inverse=True)
-            keys.append(uniq)
-            sums.append(values.new_zeros(uniq.shape[0], values.shape[1]).index_add_(0, inv, values[a:a + chunk]))
+            k, v = bin_sums(voxel_indices(points[a:a + chunk], voxel), values[a:a + chunk])
+            keys.append(k)
+            sums.append(v)
     if not sums:
         raise ReconError("no points to bin into voxels")
     if len(sums) == 1:
@@ -96,9 +141,12 @@ def voxel_average(
     at most ``max_points`` voxels remain.
 
     A coarser voxel is an integer multiple of ``voxel`` (surface samples thin out as
-    ``1 / voxel^2``: each retry multiplies it by about ``1.05 sqrt(M / max_points)``),
-    so its voxels are unions of the finer ones and re-binning the finer voxels'
-    centroids with their sums gives exactly the average of the original points.
+    ``1 / voxel^2``: each retry multiplies it by about ``1.05 sqrt(M / max_points)``,
+    M the voxels at the current size). The first retry only counts the voxels at
+    ``voxel`` (one sort of their keys) and bins the points at the coarser size
+    directly; later ones re-bin the coarser voxels' centroids with their sums. A
+    coarser voxel is a union of finer ones, so either way the result is the average of
+    the original points per final voxel.
 
     Args:
         points: ``(N, 3)``, or a list of parts ``(N_k, 3)`` (e.g. one per keyframe).
@@ -115,13 +163,24 @@ def voxel_average(
     if isinstance(points, torch.Tensor):
         points, normals = [points], [normals]
 
+    def scaled(p: torch.Tensor) -> torch.Tensor:
+        return p * scale if scale != 1.0 else p
+
     def rows():  # (points, [points | normals | 1]) per part, scaled one part at a time
         for p, n in zip(points, normals):
-            p = p * scale if scale != 1.0 else p
+            p = scaled(p)
             yield p, torch.cat([p, n, torch.ones_like(p[:, :1])], dim=1)
 
-    sums = voxel_sums(rows(), voxel)
     factor = 1
+    if max_points is not None:
+        keys = [voxel_keys(scaled(p), voxel) for p in points]
+        if not keys or sum(k.shape[0] for k in keys) == 0:
+            raise ReconError("no points to bin into voxels")
+        count = torch.unique(torch.cat(keys)).shape[0]
+        del keys
+        if count > max_points:
+            factor = math.ceil(1.05 * math.sqrt(count / max_points))
+    sums = voxel_sums(rows(), voxel * factor)
     while max_points is not None and sums.shape[0] > max_points:
         factor = math.ceil(factor * 1.05 * math.sqrt(sums.shape[0] / max_points))
         sums = voxel_sums([(sums[:, :3] / sums[:, 6:], sums)], voxel * factor)

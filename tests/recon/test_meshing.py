@@ -8,7 +8,7 @@ import torch
 
 from tactile_slam.config import ReconConfig
 from tactile_slam.recon import ReconError, poisson_mesh
-from tactile_slam.recon.meshing import poisson_depth, voxel_average, voxel_keys, voxel_sums
+from tactile_slam.recon.meshing import bin_sums, pack_keys, poisson_depth, voxel_average, voxel_keys, voxel_sums
 
 
 def sphere_samples(n: int, radius_m: float, seed: int = 0, hemisphere: bool = False):
@@ -73,6 +73,24 @@ def test_voxel_average_of_parts_equals_the_whole(dtype):
     sums = voxel_sums([(p[:100], torch.ones(100, 1, dtype=dtype)), (p[100:], torch.ones(4900, 1, dtype=dtype))],
                       0.4, chunk=64)
     assert float(sums.sum()) == 5000 and len(sums) == len(q)
+
+
+@pytest.mark.parametrize("spread", [3, 10_000])
+def test_bin_sums_match_independent_sums(dtype, spread):
+    """A compact cloud (summed in a dense box) and a spread one (through a sort) give
+    the distinct voxels, sorted as their packed keys, with the sums of their values."""
+    rng = np.random.default_rng(3)
+    idx = torch.from_numpy(rng.integers(-spread, spread + 1, size=(4000, 3)))
+    values = torch.from_numpy(rng.normal(size=(4000, 2))).to(dtype)
+    keys, sums = bin_sums(idx, values)
+    uniq, inv = np.unique(idx.numpy(), axis=0, return_inverse=True)
+    inv = inv.reshape(-1)
+    expected = np.stack([np.bincount(inv, values[:, c].double().numpy()) for c in range(2)], 1)
+    np.testing.assert_array_equal(keys.numpy(), pack_keys(torch.from_numpy(uniq)).numpy())  # lexicographic
+    tol = 1e-12 if dtype == torch.float64 else 1e-4
+    np.testing.assert_allclose(sums.double().numpy(), expected, atol=tol, rtol=0)
+    k0, s0 = bin_sums(idx[:0], values[:0])
+    assert k0.shape == (0,) and s0.shape == (0, 2)
 
 
 def test_voxel_keys_order_and_range():
