@@ -75,10 +75,21 @@ def build_coverage(keyframes: Sequence[Keyframe], start_T_kf: torch.Tensor, conf
     return cs
 
 
-def grid_normals(points: torch.Tensor) -> torch.Tensor:
+def grid_normals(points: torch.Tensor, at: torch.Tensor | None = None) -> torch.Tensor:
     """Outward (-z facing) unit normals of a ``(H, W, 3)`` point grid by central
-    differences: ``normalize(dP/drow x dP/dcol)``."""
+    differences (:func:`torch.gradient`): ``normalize(dP/drow x dP/dcol)``.
+
+    Args:
+        points: ``(H, W, 3)``.
+        at: ``(N,)`` int64 row-major flat pixel indices where the normals are wanted
+            (``None``: every pixel); the cross products and norms run only there.
+
+    Returns:
+        ``(N, 3)`` at ``at``, else ``(H, W, 3)``.
+    """
     d_row, d_col = torch.gradient(points, dim=(0, 1))
+    if at is not None:
+        d_row, d_col = d_row.reshape(-1, 3).index_select(0, at), d_col.reshape(-1, 3).index_select(0, at)
     return F.normalize(torch.linalg.cross(d_row, d_col, dim=-1), dim=-1)
 
 
@@ -152,8 +163,12 @@ def fuse(
         rows, cols = window_around((r0, r1, c0, c1), 1, coverage.shape)
         height, sub_mask = (x.to(coverage.device) for x in height_and_contact_in(by_id[t].maps, rows, cols))
         grid = point_map(height.to(torch.float32)[None], s, (rows.start, cols.start), coverage.shape)[0]
-        p = grid[sub_mask]  # (N, 3), row-major as over the full image
-        w_t = coverage.weights(t)[rows, cols][sub_mask]
+        # the contact's pixels, row-major (as over the full image): flat in the window and in the image
+        pix = sub_mask.reshape(-1).nonzero()[:, 0]
+        width = cols.stop - cols.start
+        p = grid.reshape(-1, 3).index_select(0, pix)  # (N, 3)
+        w_t = coverage.weights(t).reshape(-1).index_select(
+            0, (pix // width + rows.start) * coverage.shape[1] + pix % width + cols.start)
         pose_t = coverage.pose(t)
         p_t = p.T.contiguous()  # channel-first for the projections
         owned = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
@@ -175,8 +190,8 @@ def fuse(
             beats = w_own >= w_t[i] if n > t else w_own > w_t[i]
             owned[i[(w_own > 0) & near & beats]] = False
         p = p + shift / total.unsqueeze(1)
-        grid[sub_mask] = p
-        normals = (grid_normals(grid)[sub_mask].double() @ pose_t[:3, :3].T).float()
+        grid.reshape(-1, 3).index_copy_(0, pix, p)
+        normals = (grid_normals(grid, pix).double() @ pose_t[:3, :3].T).float()
         points = (p.double() @ pose_t[:3, :3].T + pose_t[:3, 3]).float()
         mask = torch.zeros(coverage.shape, dtype=torch.bool, device=coverage.device)
         mask[rows, cols] = sub_mask
@@ -185,35 +200,29 @@ def fuse(
     return out
 
 
-def merge_surfaces(fused: Sequence[FusedKeyframe], chunk: int = 64) -> TriMesh:
+def merge_surfaces(fused: Sequence[FusedKeyframe]) -> TriMesh:
     """One mesh from the owned parts of fused keyframes: grid triangles over each
-    keyframe's owned pixels (``chunk`` keyframes triangulated at once, each over its
-    contact box), concatenated. Vertex normals are the fused grids' outward normals
-    (central differences, the ones Poisson meshing uses). Ownership leaves one sheet
-    per surface region (no stacked copies); seams between keyframes are not stitched.
-    Vertices in no triangle (isolated owned pixels) are dropped."""
+    keyframe's owned pixels (triangulated over its contact box), concatenated in
+    keyframe order. Vertex normals are the fused grids' outward normals (central
+    differences, the ones Poisson meshing uses). Ownership leaves one sheet per surface
+    region (no stacked copies); seams between keyframes are not stitched. Vertices in
+    no triangle (isolated owned pixels) are dropped."""
     if not fused:
         raise ReconError("fusion produced no keyframes to merge")
     faces, verts, norms, offset = [], [], [], 0
-    for a in range(0, len(fused), chunk):
-        part = fused[a:a + chunk]
-        boxes = [mask_bounds(fk.mask) for fk in part]  # (r0, r1, c0, c1), half-open
-        h = max(r1 - r0 for r0, r1, _, _ in boxes)
-        w = max(c1 - c0 for _, _, c0, c1 in boxes)
-        # each box at the top left of its slot: row-major order within a box is the
-        # order of its pixels in the full mask, and triangles never leave a box
-        keep = torch.zeros((len(part), h, w), dtype=torch.bool, device=part[0].mask.device)
-        for j, (fk, (r0, r1, c0, c1)) in enumerate(zip(part, boxes)):
-            keep[j, :r1 - r0, :c1 - c0][fk.mask[r0:r1, c0:c1]] = fk.owned
-        f = grid_faces(keep)  # into this chunk's owned points
-        # triangles never join keyframes: the chunk's vertices in no triangle go now
-        used = torch.zeros(int(keep.sum()), dtype=torch.bool, device=f.device)
+    for fk in fused:
+        r0, r1, c0, c1 = mask_bounds(fk.mask)
+        # row-major order within the box is the order of the pixels in the full mask
+        keep = torch.zeros((r1 - r0, c1 - c0), dtype=torch.bool, device=fk.mask.device)
+        keep[fk.mask[r0:r1, c0:c1]] = fk.owned
+        f = grid_faces(keep)  # into this keyframe's owned points
+        used = torch.zeros(int(fk.owned.sum()), dtype=torch.bool, device=f.device)
         used[f.reshape(-1)] = True
-        remap = torch.cumsum(used, 0) - 1
-        faces.append(remap[f] + offset)
-        verts.append(torch.cat([fk.points[fk.owned] for fk in part])[used])
-        norms.append(torch.cat([fk.normals[fk.owned] for fk in part])[used])
-        offset += int(used.sum())
+        faces.append((torch.cumsum(used, 0) - 1 + offset)[f])
+        rows = fk.owned.nonzero()[:, 0][used]
+        verts.append(fk.points.index_select(0, rows))
+        norms.append(fk.normals.index_select(0, rows))
+        offset += verts[-1].shape[0]
     f = torch.cat(faces)
     if f.numel() == 0:
         raise ReconError("fusion produced no triangles (contacts too small or fully overlapped)")

@@ -82,15 +82,19 @@ def grid_faces(mask: torch.Tensor) -> torch.Tensor:
     """
     m = mask if mask.dim() == 3 else mask.unsqueeze(0)
     k, h, w = m.shape
-    index = torch.full((k, h + 1, w + 1), -1, dtype=torch.int64, device=mask.device)
-    index[:, :h, :w][m] = torch.arange(int(m.sum()), device=mask.device)
-    a = index[:, :h, :w]
-    down = index[:, 1:h + 1, :w]
-    right = index[:, :h, 1:w + 1]
-    diag = index[:, 1:h + 1, 1:w + 1]
-    upper = (a >= 0) & (down >= 0) & (right >= 0)
-    lower = upper & (diag >= 0)
-    f1 = torch.stack([a[upper], down[upper], right[upper]], dim=1)
-    f2 = torch.stack([down[lower], diag[lower], right[lower]], dim=1)
+    padded = torch.zeros((k, h + 1, w + 1), dtype=torch.bool, device=mask.device)
+    padded[:, :h, :w] = m
+    pos = padded.reshape(-1).nonzero()[:, 0]  # masked pixels, row-major over the stack
+    index = torch.full((k * (h + 1) * (w + 1),), -1, dtype=torch.int64, device=mask.device)
+    index[pos] = torch.arange(pos.shape[0], device=mask.device)
+    # a pixel's right, lower and diagonal neighbours are 1, w + 1 and w + 2 further on;
+    # the padding row and column read -1
+    right = index[pos + 1]
+    down = index[pos + w + 1]
+    diag = index[pos + w + 2]
+    upper = (down >= 0) & (right >= 0)
+    iu = upper.nonzero()[:, 0]
+    il = (upper & (diag >= 0)).nonzero()[:, 0]
+    f1 = torch.stack([iu, down.index_select(0, iu), right.index_select(0, iu)], dim=1)
+    f2 = torch.stack([down.index_select(0, il), diag.index_select(0, il), right.index_select(0, il)], dim=1)
     return torch.cat([f1, f2])
-

@@ -81,6 +81,10 @@ def test_grid_normals_face_outward(dtype):
     expected = torch.tensor([0.5, 0.0, -1.0], dtype=dtype) / (1.25**0.5)
     torch.testing.assert_close(n, expected.expand_as(n))
     assert n.shape == (8, 9, 3)
+    at = torch.tensor([0, 8, 40, 71])  # corners, an inner pixel, the last pixel
+    curved = pts.clone()
+    curved[..., 2] = 0.1 * xs**2 - 0.05 * ys * xs
+    torch.testing.assert_close(grid_normals(curved, at), grid_normals(curved).reshape(-1, 3)[at], atol=0, rtol=0)
 
 
 def test_fused_point_is_weighted_mean_of_surfaces(device):
