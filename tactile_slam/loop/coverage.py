@@ -253,6 +253,10 @@ class _Node:
     start_T_kf: torch.Tensor  # (4, 4) float64
     active: bool = True
     neighbours: set[int] = field(default_factory=set)
+    # max over the neighbours in cover_ids of their weights at ``points`` (``(N,)``);
+    # None when not computed or stale (a pose changed)
+    cover: torch.Tensor | None = None
+    cover_ids: frozenset[int] = frozenset()
 
 
 class CoverageSet:
@@ -370,6 +374,9 @@ class CoverageSet:
             node.start_T_kf = _check_pose(pose, node.start_T_kf.device)
             if node.active:
                 self._pbuf[node.slot] = node.start_T_kf
+        if poses:
+            for node in self._nodes.values():
+                node.cover = None
 
     def merge(self, dominant: int, absorbed: Iterable[int]) -> None:
         """Merge groups after a loop closure (call :meth:`update_poses` first).
@@ -476,6 +483,7 @@ class CoverageSet:
         for nb_id in node.neighbours:
             self._nodes[nb_id].neighbours.discard(node.id)
         node.neighbours.clear()
+        node.cover = None
         node.active = False
         # Inactive keyframes are never compared again: release their data.
         node.points = node.points[:, :0]
@@ -567,14 +575,23 @@ class CoverageSet:
 
     def revealed(self, node: _Node) -> float:
         """Weight of ``node`` not covered by its neighbours (weighted px):
-        ``sum_p max(W_k(p) - max_n W_n(pi(n_T_k p)), 0)``; ``sum W_k`` without neighbours."""
+        ``sum_p max(W_k(p) - max_n W_n(pi(n_T_k p)), 0)``; ``sum W_k`` without neighbours.
+
+        The max over neighbours is kept with the node: while neighbours are only added
+        (each insertion links the new keyframe to old ones), only the new ones are
+        sampled; a removed neighbour or a changed pose recomputes it."""
         if not node.neighbours:
             return float(node.weights.sum())
-        nbs = [self._nodes[i] for i in sorted(node.neighbours)]
-        poses = torch.stack([n.start_T_kf for n in nbs])
-        n_T_k = torch.linalg.solve(poses, node.start_T_kf.unsqueeze(0).expand(len(nbs), -1, -1))
-        cover = self._sum_points_into(node.points, nbs, n_T_k).amax(dim=0)
-        return float((node.weights - cover).clamp(min=0).sum())
+        fresh = node.cover is not None and node.cover_ids <= node.neighbours
+        ids = sorted(node.neighbours - node.cover_ids) if fresh else sorted(node.neighbours)
+        if ids:
+            nbs = [self._nodes[i] for i in ids]
+            poses = torch.stack([n.start_T_kf for n in nbs])
+            n_T_k = torch.linalg.solve(poses, node.start_T_kf.unsqueeze(0).expand(len(nbs), -1, -1))
+            cover = self._sum_points_into(node.points, nbs, n_T_k).amax(dim=0)
+            node.cover = torch.maximum(node.cover, cover) if fresh else cover
+            node.cover_ids = frozenset(node.neighbours)
+        return float((node.weights - node.cover).clamp(min=0).sum())
 
 
 def _check_pose(pose: torch.Tensor, device: torch.device) -> torch.Tensor:

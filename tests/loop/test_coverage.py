@@ -201,6 +201,42 @@ def test_update_poses_changes_links(device):
     assert not cs.add(keyframe(1, m, device), pose())  # now on top of keyframe 0
 
 
+def test_revealed_matches_independent_sum_as_links_change(device):
+    """revealed(k) keeps its max over neighbours between calls; after insertions,
+    pruning and a pose update it still equals sum_p max(W_k(p) - max_n W_n(p shifted), 0)
+    computed here from shifted weight maps (translations by whole pixels)."""
+    m = rect(40, 200, 60, 260)
+    w = boundary_weights(m[None])[0]
+    shifts = {}
+    cs = CoverageSet(CFG)
+
+    def expected(k: int) -> float:
+        cover = torch.zeros(H, W)
+        for n in cs.neighbours(k):
+            d = shifts[k] - shifts[n]  # k's pixel column c lands on n's column c + d
+            moved = torch.zeros(H, W)
+            if d >= 0:
+                moved[:, :W - d] = w[:, d:]
+            else:
+                moved[:, -d:] = w[:, :W + d]
+            cover = torch.maximum(cover, moved)
+        return float((w - cover).clamp(min=0)[m].sum())
+
+    def check():
+        for k in cs.active:
+            assert cs.revealed(cs._nodes[k]) == pytest.approx(expected(k), rel=1e-5)
+
+    for k, dx in enumerate([0, 90, 45, 150, 20]):
+        shifts[k] = dx
+        cs.add(keyframe(k, m, device), pose(dx_px=dx))
+        check()
+    assert len(cs.active) < 5  # something was pruned on the way
+    moved_id = cs.active[-1]
+    shifts[moved_id] += 7
+    cs.update_poses({moved_id: pose(dx_px=shifts[moved_id])})  # links kept, geometry changed
+    check()
+
+
 def test_depth_gate_and_symmetric_options(device):
     m = rect(40, 200, 60, 260)
     cfg = Config()
