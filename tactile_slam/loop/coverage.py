@@ -221,18 +221,27 @@ def lookup_bilinear(buffers: Sequence[torch.Tensor], slots: torch.Tensor, cr: to
     fr = cr[..., 1] - r0
     c0 = c0.long()
     r0 = r0.long()
-    # the two columns and two rows of the corners, clamped, with their in-image tests
-    # (a corner is in the image when its row and its column are)
     base = slots.view(-1, 1) * (h * w)
-    cols = [(c0.clamp(0, w - 1), (c0 >= 0) & (c0 < w)), ((c0 + 1).clamp_(0, w - 1), (c0 >= -1) & (c0 < w - 1))]
-    rows = [(r0.clamp(0, h - 1).mul_(w).add_(base), (r0 >= 0) & (r0 < h)),
-            ((r0 + 1).clamp_(0, h - 1).mul_(w).add_(base), (r0 >= -1) & (r0 < h - 1))]
     flats = [b.reshape(-1) for b in buffers]
+    weights = ((1 - fr) * (1 - fc), (1 - fr) * fc, fr * (1 - fc), fr * fc)
+    if c0.numel() and int(c0.min()) >= 0 and int(c0.max()) < w - 1 and int(r0.min()) >= 0 and int(r0.max()) < h - 1:
+        # every corner in the image: no clamps or in-image tests (the same values)
+        top = r0.mul_(w).add_(base).add_(c0)
+        corners = (top, top + 1, top + w, top + (w + 1))
+    else:
+        # the two columns and two rows of the corners, clamped, with their in-image tests
+        # (a corner is in the image when its row and its column are)
+        cols = [(c0.clamp(0, w - 1), (c0 >= 0) & (c0 < w)), ((c0 + 1).clamp_(0, w - 1), (c0 >= -1) & (c0 < w - 1))]
+        rows = [(r0.clamp(0, h - 1).mul_(w).add_(base), (r0 >= 0) & (r0 < h)),
+                ((r0 + 1).clamp_(0, h - 1).mul_(w).add_(base), (r0 >= -1) & (r0 < h - 1))]
+        corners, masked = [], []
+        for k, (dr, dc) in enumerate(((0, 0), (0, 1), (1, 0), (1, 1))):
+            (r, r_in), (c, c_in) = rows[dr], cols[dc]
+            corners.append(r + c)
+            masked.append(weights[k] * (r_in & c_in))
+        weights = masked
     out = [torch.zeros_like(fc, dtype=b.dtype) for b in buffers]
-    for dr, dc, wt in ((0, 0, (1 - fr) * (1 - fc)), (0, 1, (1 - fr) * fc), (1, 0, fr * (1 - fc)), (1, 1, fr * fc)):
-        (r, r_in), (c, c_in) = rows[dr], cols[dc]
-        idx = r + c
-        wt = wt * (r_in & c_in)
+    for idx, wt in zip(corners, weights):
         out = [o + f.take(idx) * wt for o, f in zip(out, flats)]
     return out
 

@@ -127,7 +127,7 @@ def project_into_box(moved: torch.Tensor, box: torch.Tensor, m_per_px: float, sh
     col, row = pixel_coords(moved[0], moved[1], m_per_px, shape)
     b = box.tolist()
     i = ((col > b[0] - 1) & (col < b[1] + 1) & (row > b[2] - 1) & (row < b[3] + 1)).nonzero()[:, 0]
-    return i, torch.stack([col[i], row[i]], dim=1)
+    return i, torch.stack([col.index_select(0, i), row.index_select(0, i)], dim=1)
 
 
 def fuse(
