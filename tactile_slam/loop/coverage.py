@@ -275,12 +275,14 @@ class CoverageSet:
         config: ``config.loop`` gives the thresholds and options, ``config.sensor`` the
             scale used to convert the area threshold to weighted pixels.
         device: where projections run; defaults to the first keyframe's device.
+        capacity: keyframes whose maps are allocated up front (e.g. a whole group
+            rebuilt for fusion); beyond it the storage doubles as keyframes arrive.
 
     Thresholds: link when overlap > ``coverage_overlap_mm2 / mm_per_px^2`` weighted px,
     prune when the revealed weight is below it (50 weighted px on a GelSight Mini).
     """
 
-    def __init__(self, config: Config, device: torch.device | str | None = None):
+    def __init__(self, config: Config, device: torch.device | str | None = None, capacity: int = 0):
         self.config = config
         self.m_per_px = config.sensor.m_per_px
         self.threshold = config.sensor.px_from_mm2(config.loop.coverage_overlap_mm2)
@@ -292,11 +294,13 @@ class CoverageSet:
         self._nodes: dict[int, _Node] = {}
         # Weight and height maps of active keyframes, one row each (slots are reused
         # after deactivation), so batched lookups gather without stacking maps.
-        self._wbuf = torch.zeros(0, self.shape[0] * self.shape[1])
-        self._hbuf = torch.zeros(0, self.shape[0] * self.shape[1])
-        self._pbuf = torch.zeros(0, 4, 4, dtype=torch.float64)  # start_T_kf per slot
-        self._rbuf = torch.zeros(0, 2, dtype=torch.float64)  # (radius, radius_xy) per slot
-        self._free: list[int] = []
+        if capacity < 0:
+            raise CoverageError(f"capacity must be >= 0, got {capacity}")
+        self._wbuf = torch.zeros(capacity, self.shape[0] * self.shape[1], device=self.device)
+        self._hbuf = torch.zeros(capacity, self.shape[0] * self.shape[1], device=self.device)
+        self._pbuf = torch.zeros(capacity, 4, 4, dtype=torch.float64, device=self.device)  # start_T_kf per slot
+        self._rbuf = torch.zeros(capacity, 2, dtype=torch.float64, device=self.device)  # (radius, radius_xy) per slot
+        self._free: list[int] = list(range(capacity - 1, -1, -1))
 
     # ------------------------------------------------------------------ queries
     def __len__(self) -> int:

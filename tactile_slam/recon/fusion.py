@@ -69,7 +69,7 @@ def build_coverage(keyframes: Sequence[Keyframe], start_T_kf: torch.Tensor, conf
         keyframes: the group's keyframes in insertion order.
         start_T_kf: ``(K, 4, 4)`` float64 poses (keyframe -> group start frame), metres.
     """
-    cs = CoverageSet(config, device=keyframes[0].maps.device)
+    cs = CoverageSet(config, device=keyframes[0].maps.device, capacity=len(keyframes))
     for kf, pose in zip(keyframes, start_T_kf):
         cs.add(kf, pose)
     return cs

@@ -1,4 +1,4 @@
-"""Triangle-mesh container, grid triangulation and PLY output (method.md 8.2)."""
+"""Triangle-mesh container, grid triangulation, topology checks and PLY output (method.md 8.2)."""
 
 from __future__ import annotations
 
@@ -8,6 +8,8 @@ from pathlib import Path
 import numpy as np
 import open3d as o3d
 import torch
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 
 class MeshError(ValueError):
@@ -98,3 +100,51 @@ def grid_faces(mask: torch.Tensor) -> torch.Tensor:
     f1 = torch.stack([iu, down.index_select(0, iu), right.index_select(0, iu)], dim=1)
     f2 = torch.stack([down.index_select(0, il), diag.index_select(0, il), right.index_select(0, il)], dim=1)
     return torch.cat([f1, f2])
+
+
+def _shared_edges(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The faces' undirected edges sorted by their vertex pair: ``(3F,)`` face of each,
+    ``(3F,)`` lower and ``(3F,)`` higher vertex, and ``(3F - 1,)`` bool "same edge as
+    the next one" (faces sharing an edge are consecutive)."""
+    a, b = faces.reshape(-1).astype(np.int64), faces[:, [1, 2, 0]].reshape(-1).astype(np.int64)
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    key = lo * (int(hi.max()) + 1) + hi
+    order = np.argsort(key)
+    key = key[order]
+    return order // 3, lo[order], hi[order], key[1:] == key[:-1]
+
+
+def face_components(faces: np.ndarray) -> np.ndarray:
+    """Labels of the edge-connected components of ``(F, 3)`` triangles (faces that
+    share an edge are connected; a shared vertex alone does not connect): ``(F,)``,
+    numbered in order of each component's first face."""
+    if len(faces) == 0:
+        return np.zeros(0, dtype=np.int64)
+    face, _, _, same = _shared_edges(faces)
+    graph = coo_matrix((np.ones(int(same.sum()), dtype=np.int8), (face[:-1][same], face[1:][same])),
+                       shape=(len(faces), len(faces)))
+    return connected_components(graph, directed=False)[1]
+
+
+def is_closed_manifold(faces: np.ndarray) -> bool:
+    """Whether ``(F, 3)`` triangles are closed and manifold: every edge in exactly two
+    faces (no boundary, no fins), and the faces around every vertex form one fan
+    (edge-connected through edges at that vertex; two cones touching at their tips fail).
+    No faces is not closed."""
+    if len(faces) == 0:
+        return False
+    face, lo, hi, same = _shared_edges(faces)
+    starts = np.flatnonzero(np.r_[True, ~same])
+    if not (np.diff(np.r_[starts, len(face)]) == 2).all():
+        return False
+    # corners (face, vertex), numbered 3 f + position; two faces sharing edge (u, v)
+    # join their corners at u and at v
+    i = np.flatnonzero(same)
+    f1, f2 = face[i], face[i + 1]
+    ends = np.r_[lo[i], hi[i]]
+    f1, f2 = np.r_[f1, f1], np.r_[f2, f2]
+    c1 = 3 * f1 + np.argmax(faces[f1] == ends[:, None], axis=1)
+    c2 = 3 * f2 + np.argmax(faces[f2] == ends[:, None], axis=1)
+    graph = coo_matrix((np.ones(len(c1), dtype=np.int8), (c1, c2)), shape=(3 * len(faces), 3 * len(faces)))
+    n_fans = connected_components(graph, directed=False)[0]
+    return n_fans == int(np.count_nonzero(np.bincount(faces.reshape(-1))))

@@ -22,7 +22,7 @@ from scipy.spatial import cKDTree
 
 from tactile_slam.config import ReconConfig
 from tactile_slam.recon.fusion import FusedKeyframe, ReconError
-from tactile_slam.recon.mesh import TriMesh
+from tactile_slam.recon.mesh import TriMesh, face_components, is_closed_manifold
 
 
 def oriented_points(fused: Sequence[FusedKeyframe], min_weight: float
@@ -248,16 +248,16 @@ def poisson_mesh(
         "poisson_points": int(p_mm.shape[0]),
         "vertices": len(mesh.vertices),
         "faces": len(mesh.triangles),
-        "closed": bool(mesh.is_edge_manifold(allow_boundary_edges=False) and mesh.is_vertex_manifold()),
+        "closed": is_closed_manifold(np.asarray(mesh.triangles)),
     }
     return TriMesh.from_open3d(mesh), stats
 
 
 def _largest_component(mesh: o3d.geometry.TriangleMesh) -> o3d.geometry.TriangleMesh:
+    """Keep the edge-connected component with the most triangles (the first on ties)."""
     if len(mesh.triangles) == 0:
         return mesh
-    labels, counts, _ = mesh.cluster_connected_triangles()
-    labels = np.asarray(labels)
-    mesh.remove_triangles_by_mask(labels != int(np.argmax(np.asarray(counts))))
+    labels = face_components(np.asarray(mesh.triangles))
+    mesh.remove_triangles_by_mask(labels != int(np.argmax(np.bincount(labels))))
     mesh.remove_unreferenced_vertices()
     return mesh

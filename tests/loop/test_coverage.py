@@ -237,6 +237,24 @@ def test_revealed_matches_independent_sum_as_links_change(device):
     check()
 
 
+def test_capacity_allocated_up_front_gives_the_same_set(device):
+    """Maps allocated up front (fewer than needed, so the storage still grows) give the
+    same links, active keyframes and weights as growing from nothing."""
+    masks = [rect(40, 200, 60, 260), rect(60, 220, 30, 200), rect(40, 200, 60, 260), rect(10, 120, 100, 300)]
+    shifts = [0, 40, 300, 150]
+    sets = [CoverageSet(CFG, capacity=c) for c in (0, 2)]
+    for cs in sets:
+        for k, (m, dx) in enumerate(zip(masks, shifts)):
+            cs.add(keyframe(k, m, device), pose(dx_px=dx))
+    a, b = sets
+    assert a.active == b.active and len(a.active) >= 2
+    for k in a.active:
+        assert a.neighbours(k) == b.neighbours(k)
+        assert torch.equal(a.weights(k), b.weights(k))
+    with pytest.raises(CoverageError, match="capacity"):
+        CoverageSet(CFG, capacity=-1)
+
+
 def test_depth_gate_and_symmetric_options(device):
     m = rect(40, 200, 60, 260)
     cfg = Config()
