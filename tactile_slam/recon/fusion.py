@@ -19,6 +19,7 @@ ties); other keyframes drop their copy of it before triangulation.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -130,6 +131,38 @@ def project_into_box(moved: torch.Tensor, box: torch.Tensor, m_per_px: float, sh
     return i, torch.stack([col.index_select(0, i), row.index_select(0, i)], dim=1)
 
 
+def _interval_dot(coeffs: Sequence[float], lo: Sequence[float], hi: Sequence[float]) -> tuple[float, float]:
+    """Range of ``sum_k c_k x_k`` over the box ``lo <= x <= hi``."""
+    a = sum(min(c * l, c * h) for c, l, h in zip(coeffs, lo, hi))
+    b = sum(max(c * l, c * h) for c, l, h in zip(coeffs, lo, hi))
+    return a, b
+
+
+def rows_reaching_box(n_T_t: torch.Tensor, lo: Sequence[float], hi: Sequence[float], box: Sequence[int],
+                      m_per_px: float, shape: tuple[int, int]) -> tuple[int, int]:
+    """Pixel rows of keyframe t (full image, inclusive; may lie outside it) that hold
+    every point :func:`project_into_box` can keep: a conservative bound by interval
+    arithmetic, one pixel wider on every side.
+
+    Args:
+        n_T_t: ``(4, 4)`` t -> n, metres.
+        lo, hi: bounds of t's points in t's frame (3 floats each, metres).
+        box: n's ``(col_min, col_max, row_min, row_max)`` (:func:`contact_box`).
+        m_per_px, shape: sensor scale and ``(H, W)``.
+    """
+    h, w = shape
+    T = n_T_t.tolist()
+    rot, trans = [row[:3] for row in T[:3]], [row[3] for row in T[:3]]
+    z_lo, z_hi = _interval_dot(rot[2], lo, hi)  # n's z of t's points, less n_T_t's z translation
+    # where a kept point lies in n's frame, less n_T_t's translation
+    n_lo = [(box[0] - 2 - (w - 1) / 2.0) * m_per_px - trans[0], (box[2] - 2 - (h - 1) / 2.0) * m_per_px - trans[1],
+            z_lo - m_per_px]
+    n_hi = [(box[1] + 2 - (w - 1) / 2.0) * m_per_px - trans[0], (box[3] + 2 - (h - 1) / 2.0) * m_per_px - trans[1],
+            z_hi + m_per_px]
+    y_lo, y_hi = _interval_dot([rot[0][1], rot[1][1], rot[2][1]], n_lo, n_hi)  # t's y = R^T (p_n - trans)
+    return math.floor(y_lo / m_per_px + (h - 1) / 2.0) - 1, math.ceil(y_hi / m_per_px + (h - 1) / 2.0) + 1
+
+
 def fuse(
     keyframes: Sequence[Keyframe],
     start_T_kf: torch.Tensor,
@@ -171,16 +204,26 @@ def fuse(
             0, (pix // width + rows.start) * coverage.shape[1] + pix % width + cols.start)
         pose_t = coverage.pose(t)
         p_t = p.T.contiguous()  # channel-first for the projections
+        lo, hi = p.min(dim=0).values.tolist(), p.max(dim=0).values.tolist()
+        # the points of window row r are p[starts[r]:starts[r + 1]]
+        starts = [0] + torch.cumsum(sub_mask.sum(dim=1), 0).tolist()
         owned = torch.ones(p.shape[0], dtype=torch.bool, device=p.device)
         shift = torch.zeros_like(p)
         total = w_t + 1e-8
         for n in coverage.neighbours(t):
             n_T_t = torch.linalg.solve(coverage.pose(n), pose_t)
-            moved = transform_points(n_T_t[None], p_t)[0]  # (3, N) in n's frame
-            # only t's points that reach n's contact can read a non-zero weight
+            # only t's points that reach n's contact can read a non-zero weight: first
+            # the rows that can, then the points whose projection does
+            r_lo, r_hi = rows_reaching_box(n_T_t, lo, hi, boxes[n].tolist(), s, coverage.shape)
+            a = starts[min(max(r_lo - rows.start, 0), len(starts) - 1)]
+            b = starts[min(max(r_hi + 1 - rows.start, 0), len(starts) - 1)]
+            if a == b:
+                continue
+            moved = transform_points(n_T_t[None], p_t[:, a:b])[0]  # (3, b - a) in n's frame
             i, cr = project_into_box(moved, boxes[n], s, coverage.shape)
             h_n, w_n, w_own = coverage.surface_at(n, cr)
-            slide = h_n * s - moved[2, i]  # along n's z axis
+            slide = h_n * s - moved[2].index_select(0, i)  # along n's z axis
+            i += a
             near = slide.abs() <= gate
             w_n = w_n * near
             shift.index_add_(0, i, (w_n * slide).unsqueeze(1) * n_T_t[2, :3].to(p.dtype))

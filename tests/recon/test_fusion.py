@@ -15,7 +15,13 @@ from tactile_slam.config import Config
 from tactile_slam.geometry.frame import FrameBuilder, crop_to_contact
 from tactile_slam.recon import ReconError, fuse, merge_surfaces
 from tactile_slam.loop.coverage import lookup_bilinear, lookup_nearest, transform_points
-from tactile_slam.recon.fusion import contact_box, grid_normals, keyframe_contact_box, project_into_box
+from tactile_slam.recon.fusion import (
+    contact_box,
+    grid_normals,
+    keyframe_contact_box,
+    project_into_box,
+    rows_reaching_box,
+)
 from tactile_slam.recon.mesh import grid_faces
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -298,3 +304,31 @@ def test_keyframe_contact_box_without_contact_is_an_error():
     for maps in (flat, crop_to_contact(flat)):
         with pytest.raises(ReconError, match=f"keyframe {k.id} has no contact"):
             keyframe_contact_box(Keyframe(k.id, k.session, maps, k.new_session, k.prev_T_kf))
+
+
+def test_rows_reaching_box_hold_every_point_the_box_keeps():
+    """Over random poses (tilts up to 35 deg, in-plane turns, shifts) and boxes, every
+    point of a grid-like cloud that the box projection keeps lies in the returned rows;
+    and the bound is useful: far from the box, rows are excluded."""
+    rng = np.random.default_rng(5)
+    excluded = 0
+    for trial in range(60):
+        rows_px = rng.integers(0, H, 4000).astype(np.float64)  # pixel centres, as a keyframe's points
+        cols_px = rng.integers(0, W, 4000).astype(np.float64)
+        flat = trial % 2 == 0  # half the trials: a flat patch and an in-plane move (a tight bound)
+        depth = np.zeros(4000) if flat else rng.uniform(-1.5e-3, 0.2e-3, 4000)
+        pts = torch.from_numpy(np.stack([(cols_px - (W - 1) / 2) * S, (rows_px - (H - 1) / 2) * S, depth],
+                                        0)).float()  # (3, N)
+        n_T_t = torch.eye(4, dtype=torch.float64)
+        tilt = rng.normal(size=3) * (np.array([0.0, 0.0, 1.5]) if flat else np.array([0.3, 0.3, 1.5]))
+        n_T_t[:3, :3] = torch.from_numpy(Rotation.from_rotvec(tilt).as_matrix())
+        n_T_t[:3, 3] = torch.from_numpy(rng.uniform(-6e-3, 6e-3, 3) * np.array([1, 1, 0.0 if flat else 0.2]))
+        c0, r0 = int(rng.integers(0, W - 40)), int(rng.integers(0, H - 40))
+        box = torch.tensor([c0, c0 + int(rng.integers(5, 40)), r0, r0 + int(rng.integers(5, 40))])
+        lo, hi = pts.double().min(dim=1).values.tolist(), pts.double().max(dim=1).values.tolist()
+        r_lo, r_hi = rows_reaching_box(n_T_t, lo, hi, box.tolist(), S, (H, W))
+        i, _ = project_into_box(transform_points(n_T_t[None], pts)[0], box, S, (H, W))
+        row_of = rows_px[i.numpy()]
+        assert ((row_of >= r_lo) & (row_of <= r_hi)).all(), trial
+        excluded += int(((rows_px < r_lo) | (rows_px > r_hi)).sum())
+    assert excluded > 0
