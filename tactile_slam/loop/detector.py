@@ -314,17 +314,18 @@ class LoopDetector:
         return self._verify_and_accept(query, found, init, inliers, keyframes)
 
     def _exclusions(self, query: Keyframe, eligible: Collection[int], keyframes: Mapping[int, Keyframe]) -> list[int]:
-        out = []
-        for r in sorted(set(eligible)):
-            if r == query.id or r in self._removed:
-                continue
-            if r not in self._features:
-                raise LoopError(f"eligible keyframe {r} was never added to the loop detector")
-            if r not in keyframes:
-                raise LoopError(f"eligible keyframe {r} is missing from the keyframe map")
-            if r == query.id - 1 and keyframes[r].session == query.session:
-                continue  # odometry edge
-            out.append(r)
+        ids = set(eligible) - self._removed
+        ids.discard(query.id)
+        never = ids - self._features.keys()
+        if never:
+            raise LoopError(f"eligible keyframe {min(never)} was never added to the loop detector")
+        missing = ids - keyframes.keys()
+        if missing:
+            raise LoopError(f"eligible keyframe {min(missing)} is missing from the keyframe map")
+        prev = query.id - 1
+        if prev in ids and keyframes[prev].session == query.session:
+            ids.discard(prev)  # odometry edge
+        out = sorted(ids)
         self.stats.pairs += len(out)
         return out
 

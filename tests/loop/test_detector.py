@@ -229,8 +229,10 @@ def test_bad_configuration_and_input(scene):
     with pytest.raises(LoopError, match="mode"):
         LoopDetector(Config(), mode="fast")
     det = _detector(scene, ids=(0,))
-    with pytest.raises(LoopError, match="never added"):
-        det.detect(scene[2], [1], {}, {}, scene)
+    with pytest.raises(LoopError, match="keyframe 1 was never added"):
+        det.detect(scene[2], [1, 0], {}, {}, scene)
+    with pytest.raises(LoopError, match="keyframe 0 is missing from the keyframe map"):
+        det.detect(scene[2], [0], {}, {}, {2: scene[2]})
     with pytest.raises(LoopError, match="single frame"):
         det.add(Keyframe(9, 0, scene[0].frame.cat([scene[0].frame, scene[1].frame]), True, EYE))
 
