@@ -95,8 +95,7 @@ def bin_sums(idx: torch.Tensor, values: torch.Tensor) -> tuple[torch.Tensor, tor
     n = idx.shape[0]
     if n:
         lo = idx.min(dim=0).values
-        dims = idx.max(dim=0).values - lo + 1
-        d = dims.tolist()
+        d = (idx.max(dim=0).values - lo + 1).tolist()
         if d[0] * d[1] * d[2] <= max(4 * n, 4096):
             local = idx - lo
             lin = (local[:, 0] * d[1] + local[:, 1]) * d[2] + local[:, 2]
