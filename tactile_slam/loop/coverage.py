@@ -167,11 +167,14 @@ def transform_points(a_T_b: torch.Tensor, points: torch.Tensor, rows: int = 3) -
     return out
 
 
-def pixel_coords(x: torch.Tensor, y: torch.Tensor, m_per_px: float, shape: tuple[int, int]
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+def pixel_coords(x: torch.Tensor, y: torch.Tensor, m_per_px: float, shape: tuple[int, int],
+                 in_place: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Orthographic projection of metric sensor-frame ``x``, ``y`` (any shape) to float
-    pixel ``(col, row)`` of an ``(H, W)`` image (method.md 1.2)."""
+    pixel ``(col, row)`` of an ``(H, W)`` image (method.md 1.2); ``in_place`` overwrites
+    ``x`` and ``y`` with them (the same values, no new tensors)."""
     h, w = shape
+    if in_place:
+        return x.div_(m_per_px).add_((w - 1) / 2.0), y.div_(m_per_px).add_((h - 1) / 2.0)
     return x / m_per_px + (w - 1) / 2.0, y / m_per_px + (h - 1) / 2.0
 
 
@@ -576,9 +579,7 @@ class CoverageSet:
         the map's surface): ``(P, N)``."""
         gate = self.depth_gate_m is not None
         moved = transform_points(a_T_b, points, 3 if gate else 2)  # z only for the depth gate
-        h, w = self.shape  # pixel_coords, in place on the moved points: the same values
-        col = moved[:, 0].div_(self.m_per_px).add_((w - 1) / 2.0)
-        row = moved[:, 1].div_(self.m_per_px).add_((h - 1) / 2.0)
+        col, row = pixel_coords(moved[:, 0], moved[:, 1], self.m_per_px, self.shape, in_place=True)
         flat, inside = nearest_pixels(slots, col, row, self.shape)
         weights = self._wbuf.reshape(-1).take(flat) * inside
         if gate:

@@ -196,12 +196,10 @@ def fuse(
         rows, cols = window_around((r0, r1, c0, c1), 1, coverage.shape)
         height, sub_mask = (x.to(coverage.device) for x in height_and_contact_in(by_id[t].maps, rows, cols))
         grid = point_map(height.to(torch.float32)[None], s, (rows.start, cols.start), coverage.shape)[0]
-        # the contact's pixels, row-major (as over the full image): flat in the window and in the image
+        # the contact's pixels in the window, flat and row-major (as over the full image)
         pix = sub_mask.reshape(-1).nonzero()[:, 0]
-        width = cols.stop - cols.start
         p = grid.reshape(-1, 3).index_select(0, pix)  # (N, 3)
-        w_t = coverage.weights(t).reshape(-1).index_select(
-            0, (pix // width + rows.start) * coverage.shape[1] + pix % width + cols.start)
+        w_t = coverage.weights(t)[rows, cols].reshape(-1).index_select(0, pix)
         pose_t = coverage.pose(t)
         p_t = p.T.contiguous()  # channel-first for the projections
         lo, hi = p.min(dim=0).values.tolist(), p.max(dim=0).values.tolist()
