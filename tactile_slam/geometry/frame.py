@@ -146,7 +146,111 @@ def full_batch(parts: list[Frame | CroppedFrame]) -> Frame:
         raise InputError("cannot build a batch from an empty list of frames")
     if all(isinstance(p, Frame) for p in parts):
         return Frame.cat(parts)
-    (h, w), n = parts[0].shape, sum(len(p) for p in parts)
+    shape = _common_shape(parts)
+    return _paste(parts, shape, torch.zeros((sum(len(p) for p in parts), 2), dtype=torch.int64))
+
+
+@dataclass
+class WindowBatch:
+    """``B`` frames' maps inside windows of one size ``(h, w)``, each at its own place in
+    the full image (:func:`window_batch`): what a batched registration reads of targets
+    whose contact covers a fraction of the image. As in :class:`CroppedFrame`, a frame is
+    flat and undeformed outside its window.
+
+    Attributes:
+        maps: the windows, a :class:`Frame` of size ``(h, w)`` without gradients.
+        origins: ``(B, 2)`` int64 on the CPU, each window's first row and column in the
+            full image.
+        full_shape: the full image's ``(H, W)``.
+    """
+
+    maps: Frame
+    origins: torch.Tensor
+    full_shape: tuple[int, int]
+
+    def __len__(self) -> int:
+        return len(self.maps)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """The full image's ``(H, W)``, as :attr:`Frame.shape`."""
+        return tuple(self.full_shape)
+
+    @property
+    def device(self) -> torch.device:
+        return self.maps.device
+
+    @property
+    def mm_per_px(self) -> float:
+        return self.maps.mm_per_px
+
+    def __getitem__(self, i: int | slice | torch.Tensor) -> "WindowBatch":
+        if isinstance(i, int):
+            i = slice(i, i + 1) if i != -1 else slice(-1, None)
+        return WindowBatch(self.maps[i], self.origins[i.cpu() if isinstance(i, torch.Tensor) else i],
+                           self.full_shape)
+
+    def to(self, device: torch.device | str) -> "WindowBatch":
+        return WindowBatch(self.maps.to(device), self.origins, self.full_shape)
+
+    def expand(self) -> Frame:
+        """The full-size :class:`Frame` (new tensors; gradients ``None``)."""
+        return _paste([self.maps], self.full_shape, -self.origins)
+
+
+def window_batch(parts: list[Frame | CroppedFrame], multiple: int = 1) -> WindowBatch:
+    """Frames and cropped frames, in order, in windows of one size.
+
+    A cropped frame's window is its box grown by ``multiple`` pixels on every side with
+    its edges at multiples of ``multiple`` (clipped to the image); a full frame's is the
+    whole image. All windows take the largest height and width, and a window that would
+    then pass the image's far edge is moved back inside it. So maps averaged over
+    ``f x f`` blocks, for any ``f`` dividing ``multiple``, are the full maps' blocks, and
+    the blocks next to any block of a box are in its window too.
+
+    Args:
+        parts: frames of one size ``(H, W)``; ``H`` and ``W`` must be multiples of
+            ``multiple``.
+        multiple: window alignment (>= 1), e.g. the lcm of a registration's coarse factors.
+
+    Returns:
+        a :class:`WindowBatch` of ``sum(len(p))`` frames (gradients are not kept).
+    """
+    if not parts:
+        raise InputError("cannot build a batch from an empty list of frames")
+    h, w = _common_shape(parts)
+    m = int(multiple)
+    if m < 1 or h % m or w % m:
+        raise InputError(f"window alignment must be >= 1 and divide the image size {(h, w)}, got {multiple}")
+    spans = []  # (first row, end row, first column, end column) wanted
+    for p in parts:
+        if isinstance(p, CroppedFrame):
+            bh, bw = p.box.shape
+            spans.append((max((p.top - m) // m * m, 0), min(-(-(p.top + bh + m) // m) * m, h),
+                          max((p.left - m) // m * m, 0), min(-(-(p.left + bw + m) // m) * m, w)))
+        else:
+            spans += [(0, h, 0, w)] * len(p)
+    span = torch.tensor(spans, dtype=torch.int64)
+    size = (int((span[:, 1] - span[:, 0]).max()), int((span[:, 3] - span[:, 2]).max()))
+    origins = torch.stack([span[:, 0].clamp_max(h - size[0]), span[:, 2].clamp_max(w - size[1])], 1)
+    return WindowBatch(_paste(parts, size, origins), origins, (h, w))
+
+
+def _common_shape(parts: list[Frame | CroppedFrame]) -> tuple[int, int]:
+    """The full size ``(H, W)`` shared by every part; :class:`InputError` otherwise."""
+    shape = tuple(parts[0].shape)
+    for p in parts:
+        if tuple(p.shape) != shape:
+            raise InputError(f"frames of different sizes in one batch: {tuple(p.shape)} and {shape}")
+    return shape
+
+
+def _paste(parts: list[Frame | CroppedFrame], size: tuple[int, int], origins: torch.Tensor) -> Frame:
+    """The parts' frames in windows of ``size`` ``(h, w)`` whose first row and column in
+    the full image are ``origins`` ``(n, 2)`` (negative: the part's own window starts
+    there inside the output), flat and undeformed where a part has no maps. A part's
+    maps must lie inside its window. Gradients ``None``."""
+    n, (h, w) = len(origins), size
     maps = [p.box if isinstance(p, CroppedFrame) else p for p in parts]
     first, dev = maps[0], parts[0].device
     out = Frame(gradients=None, height=torch.zeros((n, h, w), dtype=first.height.dtype, device=dev),
@@ -157,16 +261,14 @@ def full_batch(parts: list[Frame | CroppedFrame]) -> Frame:
                 timestamp=torch.cat([m.timestamp for m in maps]), mm_per_px=first.mm_per_px)
     out.normals[..., 2] = 1.0
     i = 0
-    for p, m in zip(parts, maps):
-        if tuple(p.shape) != (h, w):
-            raise InputError(f"frames of different sizes in one batch: {tuple(p.shape)} and {(h, w)}")
-        b = len(p)
-        rows, cols = slice(None), slice(None)
-        if isinstance(p, CroppedFrame):
-            rows, cols = slice(p.top, p.top + m.shape[0]), slice(p.left, p.left + m.shape[1])
-        for name in ("height", "contact", "normals", "curvature"):
-            getattr(out, name)[i:i + b, rows, cols] = getattr(m, name)
-        i += b
+    for p, mp in zip(parts, maps):
+        top, left = (p.top, p.left) if isinstance(p, CroppedFrame) else (0, 0)
+        mh, mw = mp.shape
+        for j in range(len(mp)):
+            r, c = top - int(origins[i + j, 0]), left - int(origins[i + j, 1])
+            for name in ("height", "contact", "normals", "curvature"):
+                getattr(out, name)[i + j, r:r + mh, c:c + mw] = getattr(mp, name)[j]
+        i += len(mp)
     return out
 
 

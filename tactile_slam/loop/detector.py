@@ -35,7 +35,7 @@ from dataclasses import dataclass, fields, replace
 import torch
 
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import CroppedFrame, Frame, full_batch
+from tactile_slam.geometry.frame import CroppedFrame, Frame, window_batch
 from tactile_slam.loop.features import Features, SiftSettings, curvature_features, image_features
 from tactile_slam.loop.matching import RansacSettings, match, self_similarity, similarity_to_se3
 from tactile_slam.loop.retrieval import DescriptorIndex, Footprint, IndexSettings, footprints, pose_gate
@@ -45,6 +45,7 @@ from tactile_slam.registration.normalflow import (
     prepare_reference,
     reference_settings,
     register_prepared,
+    window_multiple,
 )
 from tactile_slam.registration.result import RegistrationResult
 from tactile_slam.tracking.keyframe import Keyframe
@@ -358,8 +359,9 @@ class LoopDetector:
         that a stall check would stop must still count.
 
         The query is the one prepared reference of every batch (its samples, its CCS and
-        SCR) and the candidates are the targets; the poses are returned the other way
-        round, as the candidates' ``tar_T_ref``.
+        SCR) and the candidates are the targets, read from windows around their stored
+        contact boxes (:func:`~tactile_slam.geometry.frame.window_batch`), not full
+        maps; the poses are returned the other way round, as the candidates' ``tar_T_ref``.
 
         Args:
             query: the query keyframe.
@@ -377,9 +379,10 @@ class LoopDetector:
         prep = self._reference(query)
         step = self.config.loop.verify_batch
         config = replace(self.nf_config, stall_check_iters=0) if exhaustive else self.nf_config
+        multiple = window_multiple(config)
         out = []
         for a in range(0, len(refs), step):
-            tar = full_batch([_stored_maps(kf) for kf in refs[a:a + step]]).to(prep.device)
+            tar = window_batch([_stored_maps(kf) for kf in refs[a:a + step]], multiple).to(prep.device)
             res = register_prepared(prep, tar, se3.inverse(init_tar_T_ref[a:a + step].double()).to(prep.device),
                                     config)
             out.append(replace(res, tar_T_ref=se3.inverse(res.tar_T_ref.double())))

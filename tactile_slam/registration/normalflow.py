@@ -19,6 +19,7 @@ with ``ok = False`` and a finite pose.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -27,7 +28,7 @@ import torch.nn.functional as F
 from scipy.linalg.lapack import dposv
 
 from tactile_slam.config import JACOBIAN_KINDS, ConfigError, NormalFlowConfig
-from tactile_slam.geometry.frame import Frame
+from tactile_slam.geometry.frame import Frame, WindowBatch
 from tactile_slam.geometry.morphology import as_weights
 from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
 from tactile_slam.registration.result import RegistrationError, RegistrationResult, TrackingLost
@@ -293,11 +294,29 @@ def _rows(maps: torch.Tensor, idx: torch.Tensor) -> torch.Tensor:
 
 def _grid_scale(shape: tuple[int, int], s: float, align_corners: bool = True) -> np.ndarray:
     """Factor taking metric ``(x, y)`` (origin at the image centre) to grid_sample
-    coordinates. ``(2,)``."""
+    coordinates of a map of ``shape`` (a window of the image: plus :func:`_grid_offsets`). ``(2,)``."""
     h, w = shape
     if align_corners:  # pixel centres 0 and W-1 at -1 and 1
         return np.array([2.0 / (s * (w - 1)), 2.0 / (s * (h - 1))])
     return np.array([2.0 / (s * w), 2.0 / (s * h)])  # image edges
+
+
+def _grid_offsets(full: tuple[int, int], window: tuple[int, int], origins: np.ndarray,
+                  align_corners: bool = True) -> np.ndarray:
+    """Offsets that, added to metric ``(x, y)`` times :func:`_grid_scale` of the ``window``
+    size, give grid_sample coordinates in windows of size ``window`` whose first row and
+    column in the ``full`` image are ``origins`` ``(b, 2)``: ``(b, 2)`` ``(x, y)``. Zero
+    for full-size windows at the origin."""
+    (fh, fw), (h, w) = full, window
+    size, span = np.array([w, h], dtype=np.float64), np.array([fw - w, fh - h], dtype=np.float64)
+    return (span - 2.0 * origins[:, ::-1]) / (size - 1 if align_corners else size)
+
+
+def window_multiple(config: NormalFlowConfig) -> int:
+    """The window alignment (:func:`~tactile_slam.geometry.frame.window_batch`) that
+    targets need for every level ``config`` may solve: the lcm of its coarse and
+    fallback factors (1 without)."""
+    return math.lcm(1, *config.coarse_factors, *config.fallback_factors)
 
 
 def _sample(maps: torch.Tensor, grid: torch.Tensor, mode: str, align_corners: bool = True) -> torch.Tensor:
@@ -391,17 +410,23 @@ class _Pairs:
     jacobian_t: torch.Tensor  # (b or 1, 5, 3K)
     jtj: torch.Tensor  # (b or 1, K, 25) float64
     ata_full: torch.Tensor  # (b or 1, 5, 5) float64
-    n_map: torch.Tensor  # (b, 3, H, W)
-    c_map: torch.Tensor  # (b, 1, H, W)
+    n_map: torch.Tensor  # (b, 3, h, w) target maps (windows of the full image)
+    c_map: torch.Tensor  # (b, 1, h, w)
+    offset: np.ndarray  # (b, 2) host float64 grid offsets of the targets' windows (_grid_offsets)
     curvature: torch.Tensor | None = None  # (b or 1, K) reference L at the samples (stall check)
-    l_map: torch.Tensor | None = None  # (b, 1, H, W) target curvature (stall check)
+    l_map: torch.Tensor | None = None  # (b, 1, h, w) target curvature (stall check)
 
     def take(self, ids: np.ndarray) -> "_Pairs":
         """The pairs ``ids`` (references of batch 1 stay shared)."""
         b = self.n_map.shape[0]
         idx = torch.from_numpy(ids).to(self.n_map.device)
-        parts = (getattr(self, f.name) for f in fields(self))
-        return _Pairs(*(x if x is None or (x.shape[0] == 1 and b > 1) else x[idx] for x in parts))
+
+        def pick(x):
+            if x is None or (isinstance(x, torch.Tensor) and x.shape[0] == 1 and b > 1):
+                return x
+            return x[ids] if isinstance(x, np.ndarray) else x[idx]
+
+        return _Pairs(*(pick(getattr(self, f.name)) for f in fields(self)))
 
 
 def _bmv(m: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
@@ -487,13 +512,15 @@ def _linearise(pairs: _Pairs, motion: torch.Tensor, align_corners: bool) -> tupl
     return _shared_normal_matrix(pairs, shared), atb, shared.sum(1, dtype=torch.int32)
 
 
-def _motion(rot: np.ndarray, txy: np.ndarray, scale: np.ndarray, dtype: np.dtype) -> np.ndarray:
+def _motion(rot: np.ndarray, txy: np.ndarray, scale: np.ndarray, offset: np.ndarray, dtype: np.dtype
+            ) -> np.ndarray:
     """Pack the poses for :func:`_linearise`: ``(b, 5, 4)`` in ``dtype`` with ``[:2, :3]``
     taking a metric point to grid coordinates (``R[:2] * scale``), ``[:2, 3]`` the grid
-    offset ``txy * scale`` and ``[2:, :3]`` the rotation's transpose ``R^T``."""
+    offset ``txy * scale + offset`` (``offset`` ``(b, 2)``: the targets' windows,
+    :func:`_grid_offsets`) and ``[2:, :3]`` the rotation's transpose ``R^T``."""
     out = np.zeros((len(rot), 5, 4), dtype=dtype)
     out[:, :2, :3] = rot[:, :2] * scale[:, None]
-    out[:, :2, 3] = txy * scale
+    out[:, :2, 3] = txy * scale + offset
     out[:, 2:, :3] = rot.transpose(0, 2, 1)
     return out
 
@@ -528,7 +555,7 @@ def _gauss_newton(st: _State, pairs: _Pairs, scale: np.ndarray, align_corners: b
     tol2 = (np.array([config.rot_tol, config.trans_tol_m]) * tol_scale) ** 2
     check = config.stall_check_iters if config.check_scores and pairs.l_map is not None else 0
     for i in range(max_iters):
-        motion = torch.from_numpy(_motion(cur.rot, cur.txy, scale, host_dt)).to(dev)
+        motion = torch.from_numpy(_motion(cur.rot, cur.txy, scale, pairs.offset, host_dt)).to(dev)
         if check and i > 0 and i % check == 0:
             _stall_check(cur, pairs, motion, config, align_corners, max_iters - i)
             if not cur.active.any():
@@ -566,7 +593,7 @@ def _gauss_newton(st: _State, pairs: _Pairs, scale: np.ndarray, align_corners: b
 
 def register_prepared(
     prep: PreparedReference,
-    tar: Frame,
+    tar: Frame | WindowBatch,
     init_tar_T_ref: torch.Tensor | None = None,
     config: NormalFlowConfig | None = None,
 ) -> RegistrationResult:
@@ -574,7 +601,10 @@ def register_prepared(
 
     Args:
         prep: from :func:`prepare_reference`, batch 1 or ``B``.
-        tar: ``B`` target frames of the same size and scale.
+        tar: ``B`` target frames of the same size and scale, full-size or in windows
+            (:func:`~tactile_slam.geometry.frame.window_batch` aligned to
+            :func:`window_multiple` of ``config``): the same result up to rounding, with
+            less to read when contacts cover a fraction of the image.
         init_tar_T_ref: ``(B, 4, 4)`` or ``(4, 4)`` initial tar_T_ref (metres; its tz
             is ignored), identity if ``None``.
         config: NormalFlow settings; must match the one used for ``prep``.
@@ -594,7 +624,8 @@ def register_prepared(
     return res.clone()
 
 
-def _register_prepared(prep: PreparedReference, tar: Frame, init_tar_T_ref, config) -> RegistrationResult:
+def _register_prepared(prep: PreparedReference, tar: Frame | WindowBatch, init_tar_T_ref, config
+                       ) -> RegistrationResult:
     """:func:`register_prepared` without the copy out of inference mode."""
     config = config or NormalFlowConfig()
     _check_config(config, prep.shape)
@@ -607,6 +638,10 @@ def _register_prepared(prep: PreparedReference, tar: Frame, init_tar_T_ref, conf
         raise RegistrationError(f"target size {tuple(tar.shape)} differs from reference size {prep.shape}")
     if abs(tar.mm_per_px / 1000.0 - prep.m_per_px) > 1e-12:
         raise RegistrationError(f"target scale {tar.mm_per_px} mm/px differs from the reference's")
+    if isinstance(tar, WindowBatch):
+        m = window_multiple(config)
+        if (torch.tensor(tar.maps.shape) % m).any() or (tar.origins % m).any():
+            raise RegistrationError(f"target windows must be aligned to {m} px (window_multiple of the config)")
     init = np.eye(4)[None] if init_tar_T_ref is None else _host_init(init_tar_T_ref, b)
     # one reference: its samples are shared by the batch; chunks would only add calls
     step = b if len(prep) == 1 else _chunk_pairs(config, prep.points_t.shape[2], prep.device)
@@ -626,8 +661,8 @@ def _chunk_pairs(config: NormalFlowConfig, k: int, device: torch.device) -> int:
     return max(1, config.cpu_chunk_samples // max(k, 1))
 
 
-def _register_with_fallback(prep: PreparedReference, tar: Frame, init: np.ndarray, config: NormalFlowConfig
-                            ) -> RegistrationResult:
+def _register_with_fallback(prep: PreparedReference, tar: Frame | WindowBatch, init: np.ndarray,
+                            config: NormalFlowConfig) -> RegistrationResult:
     """Solve (:func:`_register_levels`), then retry the failures through
     ``config.fallback_factors`` if set: from the same start, then (``fallback_shift_search``)
     from the start moved to the in-plane shift that best aligns the two contacts
@@ -650,13 +685,14 @@ def _register_with_fallback(prep: PreparedReference, tar: Frame, init: np.ndarra
     return res
 
 
-def _shifted_starts(prep: PreparedReference, tar: Frame, init: np.ndarray, ids: np.ndarray) -> np.ndarray:
+def _shifted_starts(prep: PreparedReference, tar: Frame | WindowBatch, init: np.ndarray, ids: np.ndarray
+                    ) -> np.ndarray:
     """``init`` of the pairs ``ids`` with its ``(x, y)`` translation replaced by the contacts'
     best-aligning shift (rotation and ``z`` kept). ``(n, 4, 4)`` host float64."""
-    sel = torch.from_numpy(ids).to(tar.device)
+    part = tar[torch.from_numpy(ids).to(tar.device)]
+    part = part.expand() if isinstance(part, WindowBatch) else part
     ref = prep if len(prep) == 1 else prep[torch.from_numpy(ids).to(prep.device)]
-    shift = correlation_shift(ref.normals_map, ref.contact, tar.normals[sel].to(prep.device),
-                              tar.contact[sel].to(prep.device))
+    shift = correlation_shift(ref.normals_map, ref.contact, part.normals.to(prep.device), part.contact.to(prep.device))
     out = np.array(np.broadcast_to(init[ids] if len(init) > 1 else init, (len(ids), 4, 4)))
     out[:, :2, 3] = shift.cpu().numpy() * prep.m_per_px
     return out
@@ -672,12 +708,15 @@ def _take_successes(res: RegistrationResult, ids: np.ndarray, retry: Registratio
     return merged
 
 
-def _register_levels(prep: PreparedReference, tar: Frame, init: np.ndarray, config: NormalFlowConfig
-                     ) -> RegistrationResult:
+def _register_levels(prep: PreparedReference, tar: Frame | WindowBatch, init: np.ndarray,
+                     config: NormalFlowConfig) -> RegistrationResult:
     """Solve the levels of ``prep`` (coarse to fine) from ``init`` ``(1 or B, 4, 4)``,
     then score (:func:`_finish`)."""
     b = len(tar)
     dev, dt = prep.device, prep.dtype
+    origins = np.zeros((b, 2))
+    if isinstance(tar, WindowBatch):
+        tar, origins = tar.maps, tar.origins.numpy().astype(np.float64)
     n_map = tar.normals.to(device=dev, dtype=dt).permute(0, 3, 1, 2)  # a view: no copy
     c_map = as_weights(tar.contact.to(dev), dt).unsqueeze(1)
     flags = np.zeros(b, dtype=bool)
@@ -688,17 +727,18 @@ def _register_levels(prep: PreparedReference, tar: Frame, init: np.ndarray, conf
     for lvl in prep.levels:
         f = lvl.factor
         coarse = f > 1  # coarse levels: block-averaged target maps, image-edge grid convention
+        offset = _grid_offsets(prep.shape, tar.shape, origins, align_corners=not coarse)
         pairs = _Pairs(prep.points_t, prep.valid, lvl.normals_t, lvl.jacobian_t, lvl.jtj, lvl.ata_full,
                        F.avg_pool2d(n_map, f) if coarse else n_map, F.avg_pool2d(c_map, f) if coarse else c_map,
-                       None if coarse else prep.curvature, None if coarse else l_map)
-        scale = _grid_scale(prep.shape, prep.m_per_px, align_corners=not coarse)
+                       offset, None if coarse else prep.curvature, None if coarse else l_map)
+        scale = _grid_scale(tar.shape, prep.m_per_px, align_corners=not coarse)
         if coarse:
             st = _gauss_newton(st, pairs, scale, False, config, config.coarse_max_iters, 1, float(f))
             st.active, st.converged = ~st.lost, np.zeros_like(st.lost)
         else:
             st = _gauss_newton(st, pairs, scale, True, config, config.max_iters, config.min_iters, 1.0)
     maps = (tar.height.to(device=dev, dtype=dt).unsqueeze(1), l_map, c_map)
-    return _finish(prep, maps, st, config, scale)
+    return _finish(prep, maps, st, config, scale, offset)
 
 
 def _host_init(init_tar_T_ref, b: int) -> np.ndarray:
@@ -713,16 +753,17 @@ def _host_init(init_tar_T_ref, b: int) -> np.ndarray:
     return init
 
 
-def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig, scale: np.ndarray
-            ) -> RegistrationResult:
+def _finish(prep: PreparedReference, maps, st: _State, config: NormalFlowConfig, scale: np.ndarray,
+            offset: np.ndarray) -> RegistrationResult:
     """tz from the height difference, CCS/SCR, degeneracy, and the ok flag.
 
-    ``maps``: the targets' ``(B, 1, H, W)`` height, curvature and contact; the poses are
-    ``st.rot``, ``st.txy`` (tz is set here). The samples are taken on the maps' device in
-    one pass; the reductions over them run on the host in float64."""
+    ``maps``: the targets' ``(B, 1, h, w)`` height, curvature and contact (windows at
+    grid ``offset`` ``(B, 2)``); the poses are ``st.rot``, ``st.txy`` (tz is set here).
+    The samples are taken on the maps' device in one pass; the reductions over them run
+    on the host in float64."""
     b = len(st.rot)
     h_map, l_map, c_map = maps
-    pack = _motion(st.rot, st.txy, scale, _host_dtype(prep.dtype))[:, :3]  # rows: grid x, grid y, then
+    pack = _motion(st.rot, st.txy, scale, offset, _host_dtype(prep.dtype))[:, :3]  # rows: grid x, grid y, then
     pack[:, 2, :3] = st.rot[:, 2]  # (R P)_z
     pack = torch.from_numpy(pack).to(prep.device)
     proj = torch.baddbmm(pack[:, :, 3:], pack[:, :, :3], prep.points_t.expand(b, -1, -1))  # (B, 3, K)

@@ -8,7 +8,7 @@ import torch
 
 from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import (Frame, FrameBuilder, InputError, crop_to_contact, full_batch,
+from tactile_slam.geometry.frame import (Frame, FrameBuilder, InputError, crop_to_contact, full_batch, window_batch,
                                          contact_bounds, height_and_contact_in, window_around)
 
 from . import presses
@@ -390,3 +390,49 @@ class TestCropToContact:
             crop_to_contact(two)
         with pytest.raises(InputError, match="margin"):
             crop_to_contact(_touch(), margin=2)
+
+
+class TestWindowBatch:
+    """Targets of a batched registration in windows of one size around their boxes."""
+
+    @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+    def test_windows_hold_the_grown_boxes_and_expand_to_the_full_batch(self, dtype, device):
+        crops = [crop_to_contact(_touch(dtype, device, rows=r, cols=c, seed=i), margin=3)
+                 for i, (r, c) in enumerate((((20, 30), (40, 52)), ((2, 9), (60, 78)), ((45, 58), (5, 15))))]
+        for m in (1, 4, 20):
+            wb = window_batch(crops, m)
+            h, w = wb.maps.shape
+            assert len(wb) == 3 and wb.shape == (60, 80) and wb.device == crops[0].device and wb.maps.gradients is None
+            assert wb.origins.dtype == torch.int64 and wb.origins.shape == (3, 2) and wb.mm_per_px == 0.0634
+            assert h % m == 0 and w % m == 0 and not (wb.origins % m).any()
+            for (top, left), crop in zip(wb.origins.tolist(), crops):
+                bh, bw = crop.box.shape
+                # the box grown by m on every side (as far as the image goes) is inside the window
+                assert top <= max(crop.top - m, 0) and top + h >= min(crop.top + bh + m, 60)
+                assert left <= max(crop.left - m, 0) and left + w >= min(crop.left + bw + m, 80)
+            want = full_batch(crops)
+            got = wb.expand()
+            for name in ("height", "contact", "normals", "curvature", "in_contact", "index", "timestamp"):
+                assert torch.equal(getattr(got, name), getattr(want, name)), (m, name)
+        wb = window_batch(crops, 4)
+        assert torch.equal(wb[2].origins, wb.origins[2:]) and torch.equal(wb[2].maps.height, wb.maps.height[2:])
+        pick = wb[torch.tensor([2, 0], device=device)]
+        assert torch.equal(pick.origins, wb.origins[[2, 0]]) and torch.equal(pick.expand().height,
+                                                                             full_batch([crops[2], crops[0]]).height)
+
+    def test_a_full_frame_makes_every_window_the_image(self, device):
+        fr, crop = _touch(device=device), crop_to_contact(_touch(device=device, seed=1, rows=(2, 9)))
+        wb = window_batch([crop, fr], 4)
+        assert wb.maps.shape == (60, 80) and not wb.origins.any()
+        assert torch.equal(wb.maps.normals, full_batch([crop, fr]).normals)
+
+    def test_exceptions(self):
+        crop = crop_to_contact(_touch())
+        with pytest.raises(InputError, match="empty"):
+            window_batch([])
+        with pytest.raises(InputError, match="alignment"):
+            window_batch([crop], 7)  # does not divide 60 x 80
+        with pytest.raises(InputError, match="alignment"):
+            window_batch([crop], 0)
+        with pytest.raises(InputError, match="different sizes"):
+            window_batch([crop, _touch(shape=(40, 80), rows=(5, 9))])

@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from tactile_slam.config import NormalFlowConfig
-from tactile_slam.geometry.frame import Frame, crop_to_contact
+from tactile_slam.geometry.frame import Frame, WindowBatch, crop_to_contact, full_batch, window_batch
 from tactile_slam.registration.normalflow import (
     normalflow,
     prepare_reference,
@@ -13,6 +13,7 @@ from tactile_slam.registration.normalflow import (
     register,
     register_pair,
     register_prepared,
+    window_multiple,
 )
 from tactile_slam.registration.result import RegistrationError, RegistrationResult, TrackingLost, pose_error
 from tactile_slam.registration.sampling import select_samples
@@ -203,6 +204,49 @@ def test_nothing_beyond_the_crop_margin_is_read(scene):
     full, cropped = register(ref_n, tars_n, init), register(rebuilt(ref_n), rebuilt(tars_n), init)
     for name in ("tar_T_ref", "ccs", "scr", "n_shared", "iterations", "ok"):
         assert torch.equal(getattr(full, name), getattr(cropped, name)), name
+
+
+WINDOW_CONFIGS = {"default": NormalFlowConfig(), "coarse": NormalFlowConfig(coarse_factors=(4,)),
+                  "fallback": NormalFlowConfig(fallback_factors=(16, 4))}
+
+
+@pytest.mark.parametrize("name", list(WINDOW_CONFIGS))
+def test_targets_in_windows_register_as_full_frames(scene, name):
+    """Targets read from windows around their crops (``window_batch``) give the full
+    frames' results up to the rounding of grid coordinates in float32: the same accepted
+    pairs and iterations, poses within 1e-3 deg and 1e-4 mm. With the fallback, a pair
+    1.5 mm off (coarse levels) and one started off the contact (the shift search, which
+    reads the expanded targets) are recovered in both."""
+    ref, tars, truth, init = scene
+    config = WINDOW_CONFIGS[name]
+    far, turn = rigid(tx_mm=1.5, ty_mm=-0.75), rigid(rz_deg=-10)
+    tars = Frame.cat([tars, frames(bumpy(1), [far, turn])])
+    init = torch.cat([init, torch.stack([EYE, rigid(tx_mm=9.0)])])  # the last starts off the contact
+    truth = torch.cat([truth, torch.stack([far, turn])])
+    crops = [crop_to_contact(tars[i]) for i in range(len(tars))]
+    windows = window_batch(crops, window_multiple(config))
+    assert windows.maps.shape[0] * windows.maps.shape[1] < 0.8 * 240 * 320  # less than the image
+    prep = prepare_reference(ref, config)
+    full, win = register_prepared(prep, full_batch(crops), init, config), register_prepared(prep, windows, init, config)
+    _close(win, full, rot_deg=1e-3, trans_mm=1e-4)
+    assert torch.equal(win.iterations, full.iterations)
+    torch.testing.assert_close(win.ccs, full.ccs, rtol=0, atol=1e-6, equal_nan=True)
+    assert full.ok[-2:].tolist() == [name == "fallback"] * 2
+    ok = full.ok.clone()
+    rot, trans = pose_error(win.tar_T_ref[ok], truth[ok])
+    assert (rot < 0.1).all() and (trans < 0.01).all()
+
+
+def test_windows_must_be_aligned_to_the_levels(scene):
+    ref, tars, _, init = scene
+    windows = window_batch([crop_to_contact(tars[i]) for i in range(2)], 4)
+    config = NormalFlowConfig(coarse_factors=(8,))
+    assert window_multiple(config) == 8 and window_multiple(NormalFlowConfig(coarse_factors=(4,),
+                                                                            fallback_factors=(6,))) == 12
+    if not (windows.origins % 8).any():
+        windows = WindowBatch(windows.maps, windows.origins + 4, windows.shape)
+    with pytest.raises(RegistrationError, match="aligned"):
+        register_prepared(prepare_reference(ref, config), windows, init[:2], config)
 
 
 def test_prepared_reference_is_reused(scene, batched):
