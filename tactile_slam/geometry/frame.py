@@ -206,7 +206,8 @@ def window_batch(parts: list[Frame | CroppedFrame], multiple: int = 1) -> Window
     whole image. All windows take the largest height and width, and a window that would
     then pass the image's far edge is moved back inside it. So maps averaged over
     ``f x f`` blocks, for any ``f`` dividing ``multiple``, are the full maps' blocks, and
-    the blocks next to any block of a box are in its window too.
+    the blocks next to any block of a box are in its window too. Windows are at least
+    2 x 2 px (a crop without contact has an empty box).
 
     Args:
         parts: frames of one size ``(H, W)``; ``H`` and ``W`` must be multiples of
@@ -231,7 +232,8 @@ def window_batch(parts: list[Frame | CroppedFrame], multiple: int = 1) -> Window
         else:
             spans += [(0, h, 0, w)] * len(p)
     span = torch.tensor(spans, dtype=torch.int64)
-    size = (int((span[:, 1] - span[:, 0]).max()), int((span[:, 3] - span[:, 2]).max()))
+    # at least 2 px (an empty box at alignment 1 would give 1, where grid coordinates are undefined)
+    size = (max(int((span[:, 1] - span[:, 0]).max()), 2), max(int((span[:, 3] - span[:, 2]).max()), 2))
     origins = torch.stack([span[:, 0].clamp_max(h - size[0]), span[:, 2].clamp_max(w - size[1])], 1)
     return WindowBatch(_paste(parts, size, origins), origins, (h, w))
 

@@ -426,6 +426,12 @@ class TestWindowBatch:
         assert wb.maps.shape == (60, 80) and not wb.origins.any()
         assert torch.equal(wb.maps.normals, full_batch([crop, fr]).normals)
 
+    def test_crops_without_contact_get_two_pixel_windows(self):
+        empty = crop_to_contact(replace(_touch(), contact=torch.zeros(1, 60, 80, dtype=torch.bool)))
+        wb = window_batch([empty, empty], 1)
+        assert wb.maps.shape == (2, 2) and not wb.maps.contact.any() and (wb.maps.normals[..., 2] == 1).all()
+        assert torch.equal(wb.expand().height, full_batch([empty, empty]).height)
+
     def test_exceptions(self):
         crop = crop_to_contact(_touch())
         with pytest.raises(InputError, match="empty"):

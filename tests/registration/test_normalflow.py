@@ -237,6 +237,13 @@ def test_targets_in_windows_register_as_full_frames(scene, name):
     assert (rot < 0.1).all() and (trans < 0.01).all()
 
 
+def test_a_window_without_contact_is_a_failure_without_nan(scene):
+    ref, tars, _, _ = scene
+    flat = replace(tars[:1], contact=torch.zeros_like(tars.contact[:1]))
+    res = register_prepared(prepare_reference(ref), window_batch([crop_to_contact(flat)]))
+    assert not bool(res.ok[0]) and bool(torch.isfinite(res.tar_T_ref).all())
+
+
 def test_windows_must_be_aligned_to_the_levels(scene):
     ref, tars, _, init = scene
     windows = window_batch([crop_to_contact(tars[i]) for i in range(2)], 4)
