@@ -227,8 +227,8 @@ def window_batch(parts: list[Frame | CroppedFrame], multiple: int = 1) -> Window
     for p in parts:
         if isinstance(p, CroppedFrame):
             bh, bw = p.box.shape
-            spans.append((max((p.top - m) // m * m, 0), min(-(-(p.top + bh + m) // m) * m, h),
-                          max((p.left - m) // m * m, 0), min(-(-(p.left + bw + m) // m) * m, w)))
+            rows, cols = window_around((p.top, p.top + bh - 1, p.left, p.left + bw - 1), m, (h, w))
+            spans.append((rows.start // m * m, -(-rows.stop // m) * m, cols.start // m * m, -(-cols.stop // m) * m))
         else:
             spans += [(0, h, 0, w)] * len(p)
     span = torch.tensor(spans, dtype=torch.int64)

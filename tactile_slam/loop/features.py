@@ -29,8 +29,7 @@ import cv2
 import numpy as np
 import torch
 
-from tactile_slam.geometry.morphology import mask_bounds
-from tactile_slam.geometry.morphology import erode
+from tactile_slam.geometry.morphology import erode, mask_bounds
 
 BACKENDS = ("opencv", "kornia")
 
