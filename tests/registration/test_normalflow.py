@@ -244,6 +244,14 @@ def test_a_window_without_contact_is_a_failure_without_nan(scene):
     assert not bool(res.ok[0]) and bool(torch.isfinite(res.tar_T_ref).all())
 
 
+def test_nan_in_a_window_is_an_error(scene):
+    ref, tars, _, init = scene
+    windows = window_batch([crop_to_contact(tars[i]) for i in range(2)])
+    windows.maps.normals[1][windows.maps.contact[1]] = float("nan")
+    with pytest.raises(RegistrationError, match="NaN"):
+        register_prepared(prepare_reference(ref), windows, init[:2])
+
+
 def test_windows_must_be_aligned_to_the_levels(scene):
     ref, tars, _, init = scene
     windows = window_batch([crop_to_contact(tars[i]) for i in range(2)], 4)
