@@ -77,12 +77,26 @@ def percentile(x: torch.Tensor, q: float) -> torch.Tensor:
     return v_lo + (pos - lo) * (v_hi - v_lo)
 
 
-def zero_level(height: torch.Tensor, changed: torch.Tensor, min_fraction: float = 0.05) -> torch.Tensor:
+GEL_MIN_FRACTION = 0.05
+"""The fraction of an image that must show undeformed gel for its heights to have a known zero."""
+
+
+def gel_visible(changed: torch.Tensor, min_fraction: float = GEL_MIN_FRACTION) -> torch.Tensor:
+    """Whether enough undeformed gel is in view to fix the height zero (and so the press
+    depth): ``(B, H, W)`` bool ``changed`` -> ``(B,)`` bool, at least ``min_fraction`` of
+    the pixels outside it. An object that covers the whole gel (a face larger than the
+    sensor) leaves none: its depth is not observable from the slopes."""
+    b = changed.shape[0]
+    return (~changed.reshape(b, -1)).sum(dim=1) >= min_fraction * changed[0].numel()
+
+
+def zero_level(height: torch.Tensor, changed: torch.Tensor, min_fraction: float = GEL_MIN_FRACTION) -> torch.Tensor:
     """Shift heights so the undeformed gel is at 0.
 
     Subtracts the median of ``height`` over pixels outside ``changed`` (the dilated
-    colour mask); where fewer than ``min_fraction`` of the pixels remain, subtracts the
-    85th percentile instead.
+    colour mask); where fewer than ``min_fraction`` of the pixels remain
+    (:func:`gel_visible`), subtracts the 85th percentile instead: a guess, since the gel's
+    own level is not in view.
 
     Args:
         height: ``(B, H, W)`` px.
@@ -95,10 +109,11 @@ def zero_level(height: torch.Tensor, changed: torch.Tensor, min_fraction: float 
     flat = height.reshape(b, -1)
     free = ~changed.reshape(b, -1)
     counts = free.sum(dim=1).tolist()
+    visible = gel_visible(changed, min_fraction).tolist()
     rest = torch.where(free, flat, torch.inf)  # the lower median of the free pixels comes first
     level = []
     for i, m in enumerate(counts):
-        if m >= min_fraction * flat.shape[1]:
+        if visible[i]:
             level.append(order_statistic(rest[i:i + 1], (m - 1) // 2)[0])
         else:
             level.append(percentile(flat[i:i + 1], 85.0)[0])

@@ -12,7 +12,7 @@ import torch
 
 from tactile_slam.calibration.model import GradientDecoder
 from tactile_slam.config import Config
-from tactile_slam.geometry.contact import colour_distance, colour_mask, contact_mask, zero_level
+from tactile_slam.geometry.contact import colour_distance, colour_mask, contact_mask, gel_visible, zero_level
 from tactile_slam.geometry.curvature import curvature, normals_from_gradients
 from tactile_slam.geometry.morphology import dilate, mask_bounds, window_around
 from tactile_slam.geometry.poisson import integrate_exact, integrate_legacy
@@ -35,6 +35,9 @@ class Frame:
         normals: ``(B, H, W, 3)`` gel-surface unit normals (toward the object).
         curvature: ``(B, H, W)`` 1/px, zero outside contact, clipped.
         in_contact: ``(B,)`` bool, eroded contact area above the configured minimum.
+        depth_known: ``(B,)`` bool, enough undeformed gel in view to fix the height zero
+            (:func:`~tactile_slam.geometry.contact.gel_visible`); where False the heights,
+            and so the press depth and every z translation measured from them, are a guess.
         index: ``(B,)`` int64 video index (``-1`` if unknown).
         timestamp: ``(B,)`` float64 seconds (``nan`` if unknown).
         mm_per_px: sensor scale.
@@ -46,6 +49,7 @@ class Frame:
     normals: torch.Tensor
     curvature: torch.Tensor
     in_contact: torch.Tensor
+    depth_known: torch.Tensor
     index: torch.Tensor
     timestamp: torch.Tensor
     mm_per_px: float
@@ -259,7 +263,8 @@ def _paste(parts: list[Frame | CroppedFrame], size: tuple[int, int], origins: to
                 contact=torch.zeros((n, h, w), dtype=torch.bool, device=dev),
                 normals=torch.zeros((n, h, w, 3), dtype=first.normals.dtype, device=dev),
                 curvature=torch.zeros((n, h, w), dtype=first.curvature.dtype, device=dev),
-                in_contact=torch.cat([m.in_contact for m in maps]), index=torch.cat([m.index for m in maps]),
+                in_contact=torch.cat([m.in_contact for m in maps]),
+                depth_known=torch.cat([m.depth_known for m in maps]), index=torch.cat([m.index for m in maps]),
                 timestamp=torch.cat([m.timestamp for m in maps]), mm_per_px=first.mm_per_px)
     out.normals[..., 2] = 1.0
     i = 0
@@ -461,6 +466,7 @@ class FrameBuilder:
             normals=normals_from_gradients(gradients),
             curvature=lap,
             in_contact=in_contact,
+            depth_known=gel_visible(changed),
             index=torch.as_tensor(index, dtype=torch.int64, device=gradients.device).reshape(b),
             timestamp=torch.as_tensor(timestamp, dtype=torch.float64, device=gradients.device).reshape(b),
             mm_per_px=cfg.sensor.mm_per_px,

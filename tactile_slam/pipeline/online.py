@@ -110,6 +110,7 @@ class PackedKeyframe:
     index: int
     timestamp: float
     in_contact: bool
+    depth_known: bool
     mm_per_px: float
     top: int
     left: int
@@ -129,7 +130,8 @@ def pack_keyframe(kf: Keyframe) -> PackedKeyframe:
     buf[4] = box.curvature[0]
     buf[5] = box.contact[0]
     return PackedKeyframe(kf.id, kf.session, kf.new_session, kf.prev_T_kf.cpu().numpy().copy(),
-                          int(box.index[0]), float(box.timestamp[0]), bool(box.in_contact[0]), box.mm_per_px,
+                          int(box.index[0]), float(box.timestamp[0]), bool(box.in_contact[0]), bool(box.depth_known[0]),
+                          box.mm_per_px,
                           crop.top, crop.left, tuple(crop.full_shape), buf)
 
 
@@ -144,6 +146,7 @@ def unpack_keyframe(p: PackedKeyframe) -> Keyframe:
         normals=b[1:4].permute(1, 2, 0)[None],
         curvature=b[4][None],
         in_contact=torch.tensor([p.in_contact]),
+        depth_known=torch.tensor([p.depth_known]),
         index=torch.tensor([p.index], dtype=torch.int64),
         timestamp=torch.tensor([p.timestamp], dtype=torch.float64),
         mm_per_px=p.mm_per_px,

@@ -60,6 +60,12 @@ class Keyframe:
         return int(self._stored.index[0])
 
     @property
+    def depth_known(self) -> bool:
+        """Whether undeformed gel was in view, so its heights (and the z of every
+        registration against it) have a known zero (:attr:`Frame.depth_known`)."""
+        return bool(self._stored.depth_known[0])
+
+    @property
     def has_contact(self) -> bool:
         return bool(self._stored.contact.any())
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from tactile_slam.geometry.contact import colour_distance, order_statistic, percentile, zero_level
+from tactile_slam.geometry.contact import colour_distance, gel_visible, order_statistic, percentile, zero_level
 
 
 def _rows(kind: str, n: int, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
@@ -62,6 +62,18 @@ def test_zero_level_subtracts_the_free_median(changed_fraction, dtype, device):
         else:
             level = np.percentile(flat, 85.0)
         np.testing.assert_allclose((h[i] - out[i]).cpu().double().numpy(), level, rtol=1e-6, atol=1e-6)
+
+
+@pytest.mark.parametrize("free_px", [0, 1, 38, 39, 40, 768])
+def test_gel_visible_needs_five_percent_free_pixels(free_px, device):
+    """``(B, H, W)`` -> ``(B,)``: true from 5 % of the pixels outside ``changed`` (38.4 of
+    768), the rule under which :func:`zero_level` takes the free median."""
+    changed = torch.ones(2, 24, 32, dtype=torch.bool, device=device)
+    changed[0].view(-1)[:free_px] = False
+    out = gel_visible(changed)
+    assert out.shape == (2,) and out.dtype == torch.bool and out.device == changed.device
+    assert out.tolist() == [free_px >= 0.05 * 768, False]
+    assert gel_visible(torch.zeros(3, 4, 5, dtype=torch.bool)).tolist() == [True] * 3
 
 
 def test_zero_level_median_is_exact_and_differentiable():

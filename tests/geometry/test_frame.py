@@ -247,15 +247,42 @@ class TestDepthRule:
                 FrameBuilder(cfg)
 
 
+def test_depth_unknown_when_the_object_covers_the_gel():
+    """Pressed flat on a face larger than the sensor (the simulator's 30 mm slab), no
+    undeformed gel is in view: 0.3, 0.8 and 1.2 mm deep give the same heights, and the
+    frames say their depth is not known. A touch on the 9 mm seed leaves a rim of free
+    gel: its depth is known and its heights reach the press depth."""
+    from tactile_slam.sim.motions import pressed_poses
+    from tactile_slam.sim.objects import make_object
+    from tactile_slam.sim.renderer import GelRenderer
+
+    cfg = Config()
+    depths = np.array([0.3e-3, 0.8e-3, 1.2e-3])
+    out = {}
+    for name in ("plane", "seed"):
+        renderer = GelRenderer(make_object(name), cfg)
+        top = np.array([[0.0, 0.0, np.asarray(renderer.mesh.vertices)[:, 2].max()]])
+        poses = pressed_poses(renderer, top.repeat(3, 0), np.array([[0.0, 0.0, 1.0]] * 3),
+                              np.array([[1.0, 0.0, 0.0]] * 3), np.zeros(3), np.zeros(3), np.zeros(3), depths)
+        maps = renderer.render(poses)
+        out[name] = FrameBuilder(cfg).from_gradients(maps.gradients, maps.contact)
+    plane, seed = out["plane"], out["seed"]
+    assert plane.depth_known.tolist() == [False] * 3 and seed.depth_known.tolist() == [True] * 3
+    # the same heights to float rounding (1.5e-6 mm), while the true depths differ by 0.9 mm
+    torch.testing.assert_close(plane.height[1:], plane.height[:1].expand(2, -1, -1), rtol=0.0, atol=1e-4)
+    deepest_mm = -seed.height.amin(dim=(1, 2)).double() * cfg.sensor.mm_per_px
+    np.testing.assert_allclose(deepest_mm.numpy(), depths * 1e3, atol=0.05)
+
+
 def test_clone_owns_its_maps():
     """``frames[i]`` shares the batch's storage; ``clone`` copies just that frame, equal
     in value, so a kept frame does not pin the batch."""
     z = torch.rand(3, 5, 6)
     batch = Frame(gradients=torch.rand(3, 5, 6, 2), height=z, contact=z > 0.5, normals=torch.rand(3, 5, 6, 3),
-                  curvature=-z, in_contact=torch.ones(3, dtype=torch.bool), index=torch.arange(3),
-                  timestamp=torch.arange(3, dtype=torch.float64), mm_per_px=0.0634)
+                  curvature=-z, in_contact=torch.ones(3, dtype=torch.bool), depth_known=torch.ones(3, dtype=torch.bool),
+                  index=torch.arange(3), timestamp=torch.arange(3, dtype=torch.float64), mm_per_px=0.0634)
     view, copy = batch[1], batch[1].clone()
-    for name in ("gradients", "height", "contact", "normals", "curvature", "index", "timestamp"):
+    for name in ("gradients", "height", "contact", "normals", "curvature", "depth_known", "index", "timestamp"):
         v, c = getattr(view, name), getattr(copy, name)
         assert torch.equal(v, c)
         assert v.untyped_storage().data_ptr() == getattr(batch, name).untyped_storage().data_ptr()
@@ -268,8 +295,8 @@ def test_frames_without_gradients():
     concatenation still work, and a batch with such a frame has none either."""
     z = torch.rand(2, 5, 6)
     full = Frame(gradients=torch.rand(2, 5, 6, 2), height=z, contact=z > 0.5, normals=torch.rand(2, 5, 6, 3),
-                 curvature=-z, in_contact=torch.ones(2, dtype=torch.bool), index=torch.arange(2),
-                 timestamp=torch.arange(2, dtype=torch.float64), mm_per_px=0.0634)
+                 curvature=-z, in_contact=torch.ones(2, dtype=torch.bool), depth_known=torch.ones(2, dtype=torch.bool),
+                 index=torch.arange(2), timestamp=torch.arange(2, dtype=torch.float64), mm_per_px=0.0634)
     bare = replace(full[1].clone(), gradients=None)
     assert bare.gradients is None and len(bare) == 1 and bare.shape == (5, 6) and bare.device == full.device
     assert torch.equal(bare.normals, full.normals[1:]) and bare.to("cpu")[0].gradients is None
@@ -288,7 +315,7 @@ def _touch(dtype=torch.float32, device="cpu", rows=(20, 30), cols=(40, 52), shap
                  height=torch.randn(1, h, w, generator=g, dtype=dtype), contact=contact,
                  normals=torch.randn(1, h, w, 3, generator=g, dtype=dtype),
                  curvature=torch.randn(1, h, w, generator=g, dtype=dtype), in_contact=torch.tensor([True]),
-                 index=torch.tensor([42]), timestamp=torch.tensor([1.5], dtype=torch.float64),
+                 depth_known=torch.tensor([True]),                 index=torch.tensor([42]), timestamp=torch.tensor([1.5], dtype=torch.float64),
                  mm_per_px=0.0634).to(device)
 
 
@@ -340,12 +367,12 @@ class TestCropToContact:
     def test_full_batch_of_frames_and_crops(self, device):
         """Crops pasted into one batch equal their expansions; full frames are copied."""
         a, b, c = (_touch(device=device, seed=i) for i in range(3))
-        crop_b = crop_to_contact(b)
+        crop_b = crop_to_contact(replace(b, depth_known=torch.tensor([False], device=device)))
         mixed = full_batch([a, crop_b, Frame.cat([c, a])])
         want = Frame.cat([replace(a, gradients=None), crop_b.expand(), replace(c, gradients=None),
                           replace(a, gradients=None)])
-        assert len(mixed) == 4 and mixed.gradients is None
-        for name in ("height", "contact", "normals", "curvature", "in_contact", "index", "timestamp"):
+        assert len(mixed) == 4 and mixed.gradients is None and mixed.depth_known.tolist() == [True, False, True, True]
+        for name in ("height", "contact", "normals", "curvature", "in_contact", "depth_known", "index", "timestamp"):
             assert torch.equal(getattr(mixed, name), getattr(want, name)), name
         assert torch.equal(full_batch([a, c]).gradients, Frame.cat([a, c]).gradients)  # all full: Frame.cat
         with pytest.raises(InputError, match="empty"):
@@ -412,7 +439,8 @@ class TestWindowBatch:
                 assert left <= max(crop.left - m, 0) and left + w >= min(crop.left + bw + m, 80)
             want = full_batch(crops)
             got = wb.expand()
-            for name in ("height", "contact", "normals", "curvature", "in_contact", "index", "timestamp"):
+            for name in ("height", "contact", "normals", "curvature", "in_contact", "depth_known", "index",
+                         "timestamp"):
                 assert torch.equal(getattr(got, name), getattr(want, name)), (m, name)
         wb = window_batch(crops, 4)
         assert torch.equal(wb[2].origins, wb.origins[2:]) and torch.equal(wb[2].maps.height, wb.maps.height[2:])

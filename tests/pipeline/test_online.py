@@ -289,7 +289,8 @@ def make_keyframe(kf_id, session, new_session, dtype=torch.float32, seed=0):
 
     frame = Frame(torch.randn(1, 6, 8, 2, generator=g, dtype=dtype), torch.randn(1, 6, 8, generator=g, dtype=dtype),
                   torch.rand(1, 6, 8, generator=g) > 0.5, torch.randn(1, 6, 8, 3, generator=g, dtype=dtype),
-                  torch.randn(1, 6, 8, generator=g, dtype=dtype), torch.tensor([True]), torch.tensor([7 + kf_id]),
+                  torch.randn(1, 6, 8, generator=g, dtype=dtype), torch.tensor([True]), torch.tensor([True]),
+                  torch.tensor([7 + kf_id]),
                   torch.tensor([0.5], dtype=torch.float64), 0.0634)
     prev_T_kf = torch.eye(4, dtype=torch.float64)
     prev_T_kf[0, 3] = 1e-3 * (kf_id + 1)
@@ -311,6 +312,9 @@ def test_pack_round_trip_one_shared_buffer(dtype):
     assert torch.equal(back.frame.contact, kf.frame.contact) and back.frame.contact.dtype == torch.bool
     assert (back.id, back.session, back.new_session, back.video_index) == (3, 1, False, 10)
     torch.testing.assert_close(back.prev_T_kf, kf.prev_T_kf)
+    assert back.depth_known and kf.depth_known
+    unknown = Keyframe(4, 1, replace(kf.frame, depth_known=torch.tensor([False])), False, kf.prev_T_kf)
+    assert not unpack_keyframe(pack_keyframe(unknown)).depth_known
     with pytest.raises(ValueError, match="one frame"):
         pack_keyframe(Keyframe(0, 0, kf.frame.cat([kf.frame, kf.frame]), True, kf.prev_T_kf))
 
