@@ -64,6 +64,7 @@ class BackEndStats:
     keyframes: int = 0
     loops: int = 0
     merges: int = 0
+    depth_unknown: int = 0  # keyframes without undeformed gel in view (their press depth, so z, is a guess)
     refined: int = 0  # loops re-measured (refinements that failed their checks keep the first value)
     refine_failed: int = 0
     ambiguous_loops: int = 0  # loops between groups whose pair also verified elsewhere (held as repetitive)
@@ -158,6 +159,7 @@ class BackEnd:
         stays a candidate for later keyframes."""
         self.keyframes[kf.id] = kf
         self.stats.keyframes += 1
+        self.stats.depth_unknown += not kf.depth_known
         prev = self._last_in_session.get(kf.session)
         if self.sessions.add_keyframe(kf.id, kf.session):
             self.graph.add_node(kf.id)
@@ -180,6 +182,7 @@ class BackEnd:
             self.detector.add(kf)
             loops = self._check_ambiguity(kf, loops)
             loops = loops + self._probe(loops)
+            loops = [lp if self._depth_known(lp.ref_id, lp.tar_id) else replace(lp, depth_known=False) for lp in loops]
         t1 = time.perf_counter()
         self.stats.time_loop_detection.append(t1 - t0)
 
@@ -225,6 +228,10 @@ class BackEnd:
                 self.detector.remove(kf.id)
         self.stats.time_coverage.append(time.perf_counter() - t2)
         return loops
+
+    def _depth_known(self, i: int, j: int) -> bool:
+        """Whether both keyframes' heights have a known zero (:attr:`Keyframe.depth_known`)."""
+        return self.keyframes[i].depth_known and self.keyframes[j].depth_known
 
     def _check_ambiguity(self, kf: Keyframe, loops: list[Loop]) -> list[Loop]:
         """``loops`` of query ``kf``, those between two groups marked ``ambiguous`` when their
@@ -369,6 +376,7 @@ class BackEnd:
             "loop_candidates": self.detector.stats.candidates if self.detector is not None else 0,
             "loops": st.loops,
             "group_merges": st.merges,
+            "keyframes_depth_unknown": st.depth_unknown,
             "loop_gate": asdict(self.gate.stats) if self.gate is not None else None,
             "refined_loops": st.refined,
             "refine_failed": st.refine_failed,

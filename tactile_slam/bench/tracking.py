@@ -231,7 +231,8 @@ def loop_scores(run_dir: Path, episode_dir: Path, config: Config) -> dict:
     mask = np.zeros((len(ep), h, w), bool)
     height[cand], mask[cand] = frames.height.cpu().numpy(), frames.contact.cpu().numpy()
     gt = gt_loop_pairs(cand, ep.object_T_sensor, height, mask, config.sensor.mm_per_px)
-    out = loop_precision_recall(pairs, ref_T_tar, ep.object_T_sensor, gt)
+    known = np.array([lp.get("depth_known", True) for lp in loops], dtype=bool)
+    out = loop_precision_recall(pairs, ref_T_tar, ep.object_T_sensor, gt, depth_known=known)
     out["false"] = out["reported"] - out["correct"]
     return out
 

@@ -89,7 +89,8 @@ def loop_report(run_dir: Path, object_T_sensor: np.ndarray) -> dict:
     video = {k["id"]: k["video_index"] for k in json.loads((run_dir / "keyframes.json").read_text())}
     pairs = np.array([[video[lp["ref_id"]], video[lp["tar_id"]]] for lp in loops], dtype=np.int64).reshape(-1, 2)
     rel = np.array([lp["ref_T_tar"] for lp in loops], dtype=np.float64).reshape(-1, 4, 4)
-    return loop_precision_recall(pairs, rel, object_T_sensor)
+    known = np.array([lp.get("depth_known", True) for lp in loops], dtype=bool)
+    return loop_precision_recall(pairs, rel, object_T_sensor, depth_known=known)
 
 
 def plot_errors(path: Path, frames: np.ndarray, errors: np.ndarray, fps: float, title: str) -> None:

@@ -5,7 +5,10 @@ of frame j's sensor in frame i's sensor frame, metres). Against the ground truth
 ``object_T_sensor``, ``i_T_j = inv(object_T_i) @ object_T_j``:
 
 * a reported loop is **correct** when its translation error is at most ``trans_tol_mm``
-  (0.3 mm) and its geodesic rotation error at most ``rot_tol_deg`` (1 degree);
+  (0.3 mm) and its geodesic rotation error at most ``rot_tol_deg`` (1 degree); a loop whose
+  keyframes include one without undeformed gel in view (``depth_known`` False in
+  ``loops.json``: the height zero, and so the loop's z, is a guess that the pose graph does
+  not use) is scored on its error across the sensor's axis only;
 * **precision** = correct loops / reported loops;
 * **recall** = ground-truth loops found by a correct report / ground-truth loops, where
   the ground-truth loops are the candidate pairs whose contact patches really overlap
@@ -19,24 +22,30 @@ import numpy as np
 from tactile_slam.eval.tracking_metrics import geodesic_deg
 
 
-def relative_pose_errors(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: np.ndarray
-                         ) -> tuple[np.ndarray, np.ndarray]:
+def relative_pose_errors(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: np.ndarray,
+                         depth_known: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Errors of estimated relative poses ``(K, 4, 4)`` for ``pairs`` ``(K, 2)`` against
-    ground truth ``(T, 4, 4)`` ``object_T_sensor``. Returns ``(trans_mm (K,), rot_deg (K,))``."""
+    ground truth ``(T, 4, 4)`` ``object_T_sensor``; where ``depth_known`` ``(K,)`` bool is
+    False the translation error leaves out its z (frame j's sensor axis). Returns
+    ``(trans_mm (K,), rot_deg (K,))``."""
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     i_T_j = np.asarray(i_T_j, dtype=np.float64).reshape(-1, 4, 4)
     if len(pairs) != len(i_T_j):
         raise ValueError(f"{len(pairs)} loop pairs but {len(i_T_j)} relative poses")
     if len(pairs) and (pairs.min() < 0 or pairs.max() >= len(object_T_sensor)):
         raise ValueError("loop pair index outside the ground-truth trajectory")
+    known = np.ones(len(pairs), bool) if depth_known is None else np.asarray(depth_known, bool).reshape(-1)
+    if len(known) != len(pairs):
+        raise ValueError(f"{len(pairs)} loop pairs but {len(known)} depth flags")
     gt = np.linalg.inv(object_T_sensor[pairs[:, 0]]) @ object_T_sensor[pairs[:, 1]]
     err = np.linalg.inv(gt) @ i_T_j
-    return np.linalg.norm(err[:, :3, 3], axis=1) * 1000.0, geodesic_deg(err[:, :3, :3], np.eye(3))
+    t = err[:, :3, 3] * np.where(known[:, None], 1.0, np.array([1.0, 1.0, 0.0]))
+    return np.linalg.norm(t, axis=1) * 1000.0, geodesic_deg(err[:, :3, :3], np.eye(3))
 
 
 def loop_precision_recall(pairs: np.ndarray, i_T_j: np.ndarray, object_T_sensor: np.ndarray,
                           gt_pairs: np.ndarray | None = None, trans_tol_mm: float = 0.3,
-                          rot_tol_deg: float = 1.0) -> dict:
+                          rot_tol_deg: float = 1.0, depth_known: np.ndarray | None = None) -> dict:
     """Precision (and recall when ``gt_pairs`` is given) of reported loops.
 
     Args:
@@ -44,13 +53,15 @@ def loop_precision_recall(pairs: np.ndarray, i_T_j: np.ndarray, object_T_sensor:
         i_T_j: ``(K, 4, 4)`` their estimated relative poses, metres.
         object_T_sensor: ``(T, 4, 4)`` ground truth.
         gt_pairs: ``(G, 2)`` ground-truth loops (order within a pair is ignored).
+        depth_known: ``(K,)`` bool, whether both keyframes of a loop had a known height zero
+            (``None``: all); the others are scored without their z error.
 
     Returns:
         ``{"reported", "correct", "precision", "gt_loops", "found", "recall",
         "trans_err_mm", "rot_err_deg"}`` (the last two: median over reported loops).
     """
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    dt, dr = relative_pose_errors(i_T_j, pairs, object_T_sensor)
+    dt, dr = relative_pose_errors(i_T_j, pairs, object_T_sensor, depth_known)
     ok = (dt <= trans_tol_mm) & (dr <= rot_tol_deg)
     out = {
         "reported": int(len(pairs)),

@@ -80,6 +80,10 @@ class Loop:
         ambiguous: the pair also verifies from another start at another pose
             (:mod:`tactile_slam.loop.ambiguity`): like ``repetitive``, no evidence of where
             the touches were; set by the back end on loops between two groups.
+        depth_known: both keyframes show undeformed gel (:attr:`Keyframe.depth_known`); if
+            not, the z translation of ``ref_T_tar`` carries that keyframe's guessed height
+            zero (set by the back end). The keyframe's odometry carries the same offset, so
+            the graph stays consistent: only that keyframe's own z is off.
     """
 
     ref_id: int
@@ -92,6 +96,7 @@ class Loop:
     repetitive: bool = False
     probe: bool = False
     ambiguous: bool = False
+    depth_known: bool = True
 
     @property
     def says_where(self) -> bool:
@@ -104,7 +109,7 @@ class Loop:
         return {"ref_id": self.ref_id, "tar_id": self.tar_id, "ref_T_tar": self.ref_T_tar.tolist(),
                 "ccs": self.ccs, "scr": self.scr, "inliers": self.inliers,
                 "init_tar_T_ref": self.init_tar_T_ref.tolist(), "repetitive": self.repetitive,
-                "probe": self.probe, "ambiguous": self.ambiguous}
+                "probe": self.probe, "ambiguous": self.ambiguous, "depth_known": self.depth_known}
 
 
 @dataclass

@@ -248,7 +248,7 @@ class OfflinePipeline:
         write_tum(out / "trajectory_tum.txt", np.arange(t) / fps, poses)
         write_json(out / "keyframes.json", [
             {"id": k.id, "video_index": k.video_index, "session": k.session, "group": group_of_kf[k.id],
-             "new_session": k.new_session, "pose": start_T_kf[k.id].tolist()}
+             "new_session": k.new_session, "depth_known": k.depth_known, "pose": start_T_kf[k.id].tolist()}
             for k in keyframes
         ])
         med = lambda xs: float(np.median(xs) * 1000) if xs else float("nan")  # noqa: E731

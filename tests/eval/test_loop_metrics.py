@@ -34,6 +34,25 @@ def test_precision_recall_hand_computed():
         loop_precision_recall(np.array([[0, 99]]), np.eye(4)[None], gt)
 
 
+def test_loops_without_known_depth_are_scored_across_the_sensor_axis():
+    """A loop whose keyframes include one without undeformed gel in view carries that
+    keyframe's guessed height zero in its z: scored on x, y and rotation only."""
+    gt = poses()
+    pairs = np.array([[2, 40], [5, 50]])
+    rel = np.linalg.inv(gt[pairs[:, 0]]) @ gt[pairs[:, 1]]
+    lateral = np.eye(4)
+    lateral[:3, 3] = [3e-4, 4e-4, 7e-4]  # error in frame j: 0.5 mm across the axis, 0.7 mm along it
+    rel = rel @ lateral
+    dt, _ = relative_pose_errors(rel, pairs, gt, np.array([True, False]))
+    np.testing.assert_allclose(dt, [np.sqrt(0.74), 0.5], rtol=1e-9)
+    np.testing.assert_allclose(relative_pose_errors(rel, pairs, gt)[0], [np.sqrt(0.74)] * 2, rtol=1e-9)
+    rel[:, :3, 3] -= (rel[:, :3, :3] @ np.array([3e-4, 4e-4, 0.0]))  # only the z error is left
+    m = loop_precision_recall(pairs, rel, gt, depth_known=np.array([True, False]))
+    assert m["correct"] == 1 and m["reported"] == 2
+    with pytest.raises(ValueError, match="depth flags"):
+        relative_pose_errors(rel, pairs, gt, np.array([True]))
+
+
 def test_overlap_of_shifted_square_patch():
     """A 60x60 px flat patch seen again after the sensor moved 10 px along x: the
     overlap is 50x60 px."""
