@@ -141,7 +141,8 @@ def loop_error(lp, true_ref_T_tar: torch.Tensor, kmap: dict[int, Keyframe]) -> t
     """Rotation (deg) and translation (mm) error of a loop against the true ``ref_T_tar``
     (:func:`~tactile_slam.registration.result.pose_error`); when either keyframe had no
     undeformed gel in view (:attr:`Keyframe.depth_known`) the translation error leaves out
-    z, which the loop cannot measure (the pose graph does not use it either)."""
+    z, which the loop cannot measure: it carries that keyframe's guessed height zero, as
+    the keyframe's odometry does."""
     rot, trans = pose_error(lp.ref_T_tar[None], true_ref_T_tar[None])
     if not (kmap[lp.ref_id].depth_known and kmap[lp.tar_id].depth_known):
         trans = torch.linalg.vector_norm(lp.ref_T_tar[:2, 3].double() - true_ref_T_tar[:2, 3].double()) * 1000.0

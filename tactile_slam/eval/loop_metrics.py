@@ -7,8 +7,8 @@ of frame j's sensor in frame i's sensor frame, metres). Against the ground truth
 * a reported loop is **correct** when its translation error is at most ``trans_tol_mm``
   (0.3 mm) and its geodesic rotation error at most ``rot_tol_deg`` (1 degree); a loop whose
   keyframes include one without undeformed gel in view (``depth_known`` False in
-  ``loops.json``: the height zero, and so the loop's z, is a guess that the pose graph does
-  not use) is scored on its error across the sensor's axis only;
+  ``loops.json``: the height zero, and so the loop's z, is a guess, shared by the
+  keyframe's odometry) is scored on its error across the sensor's axis only;
 * **precision** = correct loops / reported loops;
 * **recall** = ground-truth loops found by a correct report / ground-truth loops, where
   the ground-truth loops are the candidate pairs whose contact patches really overlap

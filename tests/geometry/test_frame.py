@@ -315,7 +315,8 @@ def _touch(dtype=torch.float32, device="cpu", rows=(20, 30), cols=(40, 52), shap
                  height=torch.randn(1, h, w, generator=g, dtype=dtype), contact=contact,
                  normals=torch.randn(1, h, w, 3, generator=g, dtype=dtype),
                  curvature=torch.randn(1, h, w, generator=g, dtype=dtype), in_contact=torch.tensor([True]),
-                 depth_known=torch.tensor([True]),                 index=torch.tensor([42]), timestamp=torch.tensor([1.5], dtype=torch.float64),
+                 depth_known=torch.tensor([True]), index=torch.tensor([42]),
+                 timestamp=torch.tensor([1.5], dtype=torch.float64),
                  mm_per_px=0.0634).to(device)
 
 

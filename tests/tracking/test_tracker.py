@@ -39,8 +39,8 @@ def frame(i: int, contact: bool | int = True, fps: float = 25.0) -> Frame:
     return Frame(
         gradients=torch.zeros(1, 4, 4, 2), height=z, contact=mask.view(1, 4, 4),
         normals=torch.zeros(1, 4, 4, 3), curvature=z, in_contact=torch.tensor([contact is True]),
-        depth_known=torch.tensor([True]), index=torch.tensor([i]), timestamp=torch.tensor([i / fps], dtype=torch.float64),
-        mm_per_px=0.0634,
+        depth_known=torch.tensor([True]), index=torch.tensor([i]),
+        timestamp=torch.tensor([i / fps], dtype=torch.float64), mm_per_px=0.0634,
     )
 
 
