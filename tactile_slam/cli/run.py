@@ -50,4 +50,7 @@ def run(args) -> int:
     loops = f", {s['loops']} loops, {s['groups']} groups" if "loops" in s else ""
     print(f"run: {s['frames']} frames, {s['contact_frames']} in contact, {s['keyframes']} keyframes, "
           f"{s['sessions']} sessions{loops}, {s['fps']:.1f} frames/s -> {out}")
+    if s["keyframes_depth_unknown"]:
+        print(f"run: {s['keyframes_depth_unknown']} keyframes saw no undeformed gel (the object covered it): "
+              "their press depth, so their z, is a guess (keyframes.json depth_known)")
     return 0

@@ -259,6 +259,7 @@ class OfflinePipeline:
             "contact_frames": contact_frames,
             "frames_with_pose": int(np.isfinite(poses).all(axis=(1, 2)).sum()),
             "keyframes": len(keyframes),
+            "keyframes_depth_unknown": sum(not k.depth_known for k in keyframes),
             "sessions": len({k.session for k in keyframes}),
             "groups": len(set(group_of_kf.values())),
             **counts,

@@ -152,6 +152,28 @@ def test_cli_frames_of_another_size_need_resize(mini_data, tmp_path, capsys):
     assert stats["contact_frames"] == 4 and stats["sessions"] == 1
 
 
+def test_cli_run_says_when_the_object_covered_the_gel(tmp_path, capsys):
+    """A sequence whose contact covers the whole gel in its first touched frames: those
+    keyframes are flagged in keyframes.json and stats.json, and the run says so."""
+    from tests.registration.surfaces import frames, rigid, textured
+
+    views = [rigid(tx_mm=0.05 * i) for i in range(12)]
+    f = frames(textured(5), views)
+    grads = np.concatenate([np.zeros((3, *f.gradients.shape[1:]), np.float32), f.gradients.numpy()])
+    contact = np.concatenate([np.zeros((3, *f.contact.shape[1:]), bool), f.contact.numpy()])
+    contact[3:6] = True  # the first three touched frames: gel covered edge to edge
+    np.savez(tmp_path / "seq.npz", gradients=grads, contact=contact)
+    out = tmp_path / "o"
+    assert main(["run", str(tmp_path / "seq.npz"), "--out", str(out), "--no-mesh", "--no-progress",
+                 "--method", "nf-kf"]) == 0
+    kfs = json.loads((out / "keyframes.json").read_text())
+    unknown = [k["video_index"] for k in kfs if not k["depth_known"]]
+    assert unknown and set(unknown) <= {3, 4, 5} and kfs[0]["video_index"] == 3
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["keyframes_depth_unknown"] == len(unknown)
+    assert f"{len(unknown)} keyframes saw no undeformed gel" in capsys.readouterr().out
+
+
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")
 def test_cli_cuda_without_a_gpu_is_a_clear_error(tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
