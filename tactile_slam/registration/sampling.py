@@ -123,7 +123,8 @@ def select_samples(
             index (all contact pixels when fewer); deterministic.
         ``"threshold"``: the public GelSLAM rule: |L| >= (n-th largest |L| over the
             image) + 1e-6 (at most n - 1 samples; none when n pixels sit at the clip).
-        ``"random"``: ``n_samples`` contact pixels drawn uniformly (old NormalFlow).
+        ``"random"``: ``n_samples`` contact pixels drawn uniformly (old NormalFlow), one
+            number per contact pixel from ``generator``.
 
     Args:
         curvature: ``(B, H, W)`` reference curvature L (zero outside contact).
@@ -149,9 +150,11 @@ def select_samples(
         _check_scores(score)
         pos, valid = top_k_indices(score, n_samples)
         return pixel.gather(1, pos), valid
-    if rule == "random":
-        r = torch.rand(flat.shape, generator=generator, dtype=torch.float64).to(flat.device)
-        return top_k_indices(torch.where(c, r, -1.0), n_samples)
+    if rule == "random":  # one draw per contact pixel, not per image pixel
+        pixel, inside = mask_to_indices(c)
+        r = torch.rand(pixel.shape, generator=generator, dtype=torch.float64).to(flat.device)
+        pos, valid = top_k_indices(torch.where(inside, r, -1.0), n_samples)
+        return pixel.gather(1, pos), valid
     a = flat.abs()
     _check_scores(a)  # this rule ranks the whole image
     k = min(n_samples, a.shape[1])

@@ -93,6 +93,24 @@ class TestRandomRule:
         assert bool(contact.reshape(2, -1).gather(1, a[0].cpu()).all())
         assert a[1].sum(1).tolist() == [50, 50]
 
+    def test_uniform_over_the_contact(self):
+        """Every contact pixel is drawn with probability n / |contact|: over 2000 seeds each
+        of 200 contact pixels comes out 500 times in expectation (binomial sd 19.4); none
+        outside it; fewer contact pixels than n gives all of them."""
+        lap = torch.randn(1, 30, 40, generator=torch.Generator().manual_seed(0))
+        contact = torch.zeros(1, 30, 40, dtype=torch.bool)
+        contact[0, 5:15, 10:30] = True
+        counts = torch.zeros(30 * 40)
+        for seed in range(2000):
+            idx, valid = select_samples(lap, contact, 50, "random", torch.Generator().manual_seed(seed))
+            assert int(valid.sum()) == 50
+            counts.index_add_(0, idx[valid], torch.ones(50))
+        inside = contact.reshape(-1)
+        assert float(counts[~inside].sum()) == 0.0
+        assert float((counts[inside] - 500.0).abs().max()) < 5 * 19.4
+        idx, valid = select_samples(lap, contact, 500, "random", torch.Generator().manual_seed(1))
+        assert int(valid.sum()) == 200 and torch.equal(idx[valid], torch.nonzero(inside).flatten())
+
 
 def test_bad_rule_and_count():
     lap, contact = _random_maps()
