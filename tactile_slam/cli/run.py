@@ -50,6 +50,9 @@ def run(args) -> int:
     loops = f", {s['loops']} loops, {s['groups']} groups" if "loops" in s else ""
     print(f"run: {s['frames']} frames, {s['contact_frames']} in contact, {s['keyframes']} keyframes, "
           f"{s['sessions']} sessions{loops}, {s['fps']:.1f} frames/s -> {out}")
+    if s["registration_breaks"]:
+        print(f"run: {s['registration_breaks']} of the {s['sessions']} sessions began inside a contact because "
+              "registration failed (too little texture, or too fast a motion)")
     if s["keyframes_depth_unknown"]:
         print(f"run: {s['keyframes_depth_unknown']} keyframes saw no undeformed gel (the object covered it): "
               "their press depth, so their z, is a guess (keyframes.json depth_known)")

@@ -84,7 +84,8 @@ def tracker_counts(tracker) -> dict:
     frame-to-frame baselines)."""
     return {"implausible_motions": getattr(tracker, "implausible", 0),
             "moved_keyframe_edges": getattr(tracker, "moved_edges", 0),
-            "coarse_rescues": getattr(tracker, "coarse_rescues", 0)}
+            "coarse_rescues": getattr(tracker, "coarse_rescues", 0),
+            "registration_breaks": getattr(tracker, "registration_breaks", 0)}
 
 
 class OfflinePipeline:

@@ -185,6 +185,7 @@ class Tracker:
         self.implausible = 0  # registrations refused by the motion-continuity check
         self.moved_edges = 0  # keyframe edges replaced by a better-scoring nearby alignment
         self.coarse_rescues = 0  # frames kept in their session by the coarse fallback
+        self.registration_breaks = 0  # sessions started inside a contact: registration failed
 
     # ----------------------------------------------------------------- helpers
     def _make_keyframe(self, frame: Frame, new_session: bool, prev_T_kf: torch.Tensor) -> Keyframe:
@@ -294,7 +295,7 @@ class Tracker:
                 return self._tracked(frame, res, _kf_T_frame(res), [])
             if weak:
                 return self._lost(index, [])
-            kf = self._new_session(frame)
+            kf = self._new_session(frame, broke=True)
             return self._done(frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[kf],
                                                is_keyframe=True))
         # lazy keyframe rule: the previous frame becomes a keyframe, then retry
@@ -312,7 +313,7 @@ class Tracker:
             return self._tracked(frame, res, _kf_T_frame(res), [prev_kf])
         if weak:  # the session's tail is the keyframe just made
             return self._lost(index, [prev_kf])
-        kf = self._new_session(frame)
+        kf = self._new_session(frame, broke=True)
         return self._done(
             frame, TrackStep(index, True, _eye(), kf.id, kf.session, keyframes=[prev_kf, kf], is_keyframe=True)
         )
@@ -358,7 +359,9 @@ class Tracker:
         self.implausible += not ok
         return ok
 
-    def _new_session(self, frame: Frame) -> Keyframe:
+    def _new_session(self, frame: Frame, broke: bool = False) -> Keyframe:
+        """A session head; ``broke``: started inside a contact because registration failed."""
+        self.registration_breaks += broke
         return self._make_keyframe(frame, True, _eye())
 
     def _tracked(self, frame: Frame, res: RegistrationResult, kf_T_frame: torch.Tensor,

@@ -21,7 +21,7 @@ from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
 from tactile_slam.sim.episode import SimulationSettings, read_episode, simulate_episode
 
 STATS_KEYS = {"frames", "contact_frames", "keyframes", "sessions", "fps", "timing_ms", "frames_with_pose",
-              "implausible_motions", "moved_keyframe_edges", "coarse_rescues"}
+              "implausible_motions", "moved_keyframe_edges", "coarse_rescues", "registration_breaks"}
 
 
 @pytest.fixture(scope="module")
@@ -172,6 +172,24 @@ def test_cli_run_says_when_the_object_covered_the_gel(tmp_path, capsys):
     stats = json.loads((out / "stats.json").read_text())
     assert stats["keyframes_depth_unknown"] == len(unknown)
     assert f"{len(unknown)} keyframes saw no undeformed gel" in capsys.readouterr().out
+
+
+def test_cli_run_says_when_sessions_break_inside_a_contact(tmp_path, capsys):
+    """One long touch of a textureless flat face (zero slopes over a held contact disc):
+    NormalFlow's degeneracy test fails every registration, so each frame after the first
+    starts a session inside the contact; stats.json counts them and the run says so."""
+    h, w = 240, 320
+    y, x = np.mgrid[0:h, 0:w]
+    disc = (x - w / 2) ** 2 + (y - h / 2) ** 2 < 80 ** 2
+    contact = np.zeros((8, h, w), bool)
+    contact[2:] = disc
+    np.savez(tmp_path / "flat.npz", gradients=np.zeros((8, h, w, 2), np.float32), contact=contact)
+    out = tmp_path / "o"
+    assert main(["run", str(tmp_path / "flat.npz"), "--out", str(out), "--no-mesh", "--no-progress",
+                 "--method", "nf-kf"]) == 0
+    stats = json.loads((out / "stats.json").read_text())
+    assert stats["sessions"] == 6 and stats["registration_breaks"] == 5  # one touch, five breaks
+    assert "5 of the 6 sessions began inside a contact" in capsys.readouterr().out
 
 
 @pytest.mark.skipif(torch.cuda.is_available(), reason="needs a machine without CUDA")

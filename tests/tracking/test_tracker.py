@@ -267,8 +267,19 @@ def test_coarse_fallback_keeps_the_session(fails, emitted):
     assert all(k.session == 0 for k in kfs) and reg.tracker.coarse_rescues == 1
     assert reg.coarse_calls == [(bad - 1, bad, (4,))]
     check_poses(steps, kfs)
+    assert reg.tracker.registration_breaks == 0
     steps, kfs, reg = run([True] * 6, fails=fails, fallback_factors=())  # off: a new session
     assert steps[bad].is_keyframe and steps[bad].session == 1 and reg.coarse_calls == []
+    assert reg.tracker.registration_breaks == 1  # inside the contact, not at a new touch
+
+
+def test_registration_breaks_count_only_sessions_begun_inside_a_contact():
+    """A new touch after contact loss starts a session without counting; failing against
+    the keyframe and, after the lazy rule, the previous frame counts once per session."""
+    steps, _, reg = run([True, True, False, True, True])
+    assert steps[3].session == 1 and reg.tracker.registration_breaks == 0
+    steps, _, reg = run([True] * 6, fails=lambda r, t: t in (2, 4), fallback_factors=())
+    assert [s.session for s in steps] == [0, 0, 1, 1, 2, 2] and reg.tracker.registration_breaks == 2
 
 
 def test_coarse_fallback_that_fails_or_jumps_starts_a_new_session():
