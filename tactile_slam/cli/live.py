@@ -71,3 +71,18 @@ def report(s: dict, out: Path) -> None:
           f"latency median {lat['median']:.0f} ms / p95 {lat['p95']:.0f} ms, stopped by {s['stopped_by']} -> {out}")
     if s.get("backend_error"):
         print(f"warning: {s['backend_error']}")
+    for line in caveats(s):
+        print(f"online: {line}")
+
+
+def caveats(s: dict) -> list[str]:
+    """What a run's statistics say the user should know about its poses: sessions broken
+    inside a contact, keyframes whose depth is a guess."""
+    out = []
+    if s.get("registration_breaks"):
+        out.append(f"{s['registration_breaks']} of the {s['sessions']} sessions began inside a contact because "
+                   "registration failed (too little texture, or too fast a motion)")
+    if s.get("keyframes_depth_unknown"):
+        out.append(f"{s['keyframes_depth_unknown']} keyframes saw no undeformed gel (the object covered it): "
+                   "their press depth, so their z, is a guess (keyframes.json depth_known)")
+    return out

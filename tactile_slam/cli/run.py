@@ -5,7 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from tactile_slam.cli.devices import add_device_argument
-from tactile_slam.cli.live import add_online_arguments, online_options, report
+from tactile_slam.cli.live import add_online_arguments, caveats, online_options, report
 from tactile_slam.config import load_config
 from tactile_slam.io.dispatch import open_source
 from tactile_slam.pipeline.offline import METHODS, OfflinePipeline, RunOptions
@@ -50,10 +50,6 @@ def run(args) -> int:
     loops = f", {s['loops']} loops, {s['groups']} groups" if "loops" in s else ""
     print(f"run: {s['frames']} frames, {s['contact_frames']} in contact, {s['keyframes']} keyframes, "
           f"{s['sessions']} sessions{loops}, {s['fps']:.1f} frames/s -> {out}")
-    if s["registration_breaks"]:
-        print(f"run: {s['registration_breaks']} of the {s['sessions']} sessions began inside a contact because "
-              "registration failed (too little texture, or too fast a motion)")
-    if s["keyframes_depth_unknown"]:
-        print(f"run: {s['keyframes_depth_unknown']} keyframes saw no undeformed gel (the object covered it): "
-              "their press depth, so their z, is a guess (keyframes.json depth_known)")
+    for line in caveats(s):
+        print(f"run: {line}")
     return 0

@@ -27,3 +27,12 @@ def test_a_native_crash_prints_the_python_stack():
     proc = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120)
     assert proc.returncode != 0
     assert "Fatal Python error" in proc.stderr and "crash_in_native_code" in proc.stderr
+
+
+def test_caveats_name_broken_sessions_and_guessed_depths():
+    from tactile_slam.cli.live import caveats
+
+    assert caveats({"sessions": 3, "registration_breaks": 0, "keyframes_depth_unknown": 0}) == []
+    assert caveats({"sessions": 1}) == []  # runs whose statistics lack the counters
+    lines = caveats({"sessions": 6, "registration_breaks": 5, "keyframes_depth_unknown": 2})
+    assert lines[0].startswith("5 of the 6 sessions began inside a contact") and lines[1].startswith("2 keyframes")

@@ -115,9 +115,12 @@ def test_cli_online_with_skipping_close_to_offline(episode, offline, tmp_path, c
     npz = str(episode / "gt_gradients.npz")
     assert main(["run", npz, "--out", str(out), "--online", "--rate", "0", "--no-mesh", "--no-progress",
                  "--jsonl", str(tmp_path / "poses.jsonl")]) == 0
-    assert "online:" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "online:" in printed
     s = json.loads((out / "stats.json").read_text())
     assert ONLINE_KEYS <= set(s) and 0 <= s["keyframes_skipped_for_loops"] < s["keyframes"]
+    assert s["keyframes_depth_unknown"] == 0 and ("sessions began inside a contact" in printed) == \
+        (s["registration_breaks"] > 0)
     from tactile_slam.pipeline.offline import RunResult
 
     res = RunResult(np.load(out / "poses.npy"), np.load(out / "poses_by_group.npy"),
