@@ -64,7 +64,6 @@ class BackEndStats:
     keyframes: int = 0
     loops: int = 0
     merges: int = 0
-    depth_unknown: int = 0  # keyframes without undeformed gel in view (their press depth, so z, is a guess)
     refined: int = 0  # loops re-measured (refinements that failed their checks keep the first value)
     refine_failed: int = 0
     ambiguous_loops: int = 0  # loops between groups whose pair also verified elsewhere (held as repetitive)
@@ -159,7 +158,6 @@ class BackEnd:
         stays a candidate for later keyframes."""
         self.keyframes[kf.id] = kf
         self.stats.keyframes += 1
-        self.stats.depth_unknown += not kf.depth_known
         prev = self._last_in_session.get(kf.session)
         if self.sessions.add_keyframe(kf.id, kf.session):
             self.graph.add_node(kf.id)
@@ -376,7 +374,7 @@ class BackEnd:
             "loop_candidates": self.detector.stats.candidates if self.detector is not None else 0,
             "loops": st.loops,
             "group_merges": st.merges,
-            "keyframes_depth_unknown": st.depth_unknown,
+            "keyframes_depth_unknown": sum(not k.depth_known for k in self.keyframes.values()),
             "loop_gate": asdict(self.gate.stats) if self.gate is not None else None,
             "refined_loops": st.refined,
             "refine_failed": st.refine_failed,

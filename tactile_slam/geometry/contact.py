@@ -87,7 +87,12 @@ def gel_visible(changed: torch.Tensor, min_fraction: float = GEL_MIN_FRACTION) -
     the pixels outside it. An object that covers the whole gel (a face larger than the
     sensor) leaves none: its depth is not observable from the slopes."""
     b = changed.shape[0]
-    return (~changed.reshape(b, -1)).sum(dim=1) >= min_fraction * changed[0].numel()
+    return _enough_gel((~changed.reshape(b, -1)).sum(dim=1), changed[0].numel(), min_fraction)
+
+
+def _enough_gel(free_px: torch.Tensor, n_px: int, min_fraction: float) -> torch.Tensor:
+    """``(B,)`` bool: ``free_px`` ``(B,)`` undeformed pixels of ``n_px`` are enough."""
+    return free_px >= min_fraction * n_px
 
 
 def zero_level(height: torch.Tensor, changed: torch.Tensor, min_fraction: float = GEL_MIN_FRACTION) -> torch.Tensor:
@@ -108,8 +113,8 @@ def zero_level(height: torch.Tensor, changed: torch.Tensor, min_fraction: float 
     b = height.shape[0]
     flat = height.reshape(b, -1)
     free = ~changed.reshape(b, -1)
-    counts = free.sum(dim=1).tolist()
-    visible = gel_visible(changed, min_fraction).tolist()
+    free_px = free.sum(dim=1)
+    counts, visible = free_px.tolist(), _enough_gel(free_px, flat.shape[1], min_fraction).tolist()
     rest = torch.where(free, flat, torch.inf)  # the lower median of the free pixels comes first
     level = []
     for i, m in enumerate(counts):
