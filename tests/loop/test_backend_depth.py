@@ -14,19 +14,14 @@ from tactile_slam.bench.loops import loop_error
 from tactile_slam.config import Config
 from tactile_slam.posegraph import se3
 from tactile_slam.tracking.keyframe import Keyframe
-from tests.registration.surfaces import frames, rigid, textured
+from tests.loop.revisit import revisit_keyframes
 
 
 @pytest.fixture(scope="module")
 def revisit():
     """One session: keyframe 0, keyframe 1 moved away, keyframe 2 back near 0 (a loop to 0);
     ``kf0_T`` ``(3, 4, 4)`` each keyframe's true pose in keyframe 0's frame."""
-    views = [torch.eye(4, dtype=torch.float64), rigid(rz_deg=8.0, tx_mm=1.5), rigid(rx_deg=1.5, rz_deg=3.0, ty_mm=0.3)]
-    f = frames(textured(5), views)
-    kf0_T = [se3.inverse(v) for v in views]
-    kfs = [Keyframe(k, 0, f[k], k == 0, torch.eye(4, dtype=torch.float64) if k == 0 else
-                    se3.inverse(kf0_T[k - 1]) @ kf0_T[k]) for k in range(3)]
-    return kfs, torch.stack(kf0_T)
+    return revisit_keyframes()
 
 
 def _guessed_zero(kf: Keyframe, offset_px: float) -> Keyframe:

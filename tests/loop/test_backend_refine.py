@@ -9,27 +9,17 @@ import torch
 
 from tactile_slam.backend import BackEnd
 from tactile_slam.config import Config
-from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.refine import refine_edges
 from tactile_slam.registration.result import pose_error
-from tactile_slam.tracking.keyframe import Keyframe
-from tests.registration.surfaces import frames, rigid, textured
+from tests.loop.revisit import revisit_keyframes
 
 
 @pytest.fixture(scope="module")
 def revisit():
-    """One session: keyframe 0, keyframe 1 moved away, keyframe 2 back near 0 (a loop to 0).
-    Poses are ``tar_T_ref`` of the object (reference = keyframe 0's view); slopes carry
-    i.i.d. noise of 0.05 so the 3000-sample verification is measurably off."""
-    views = [torch.eye(4, dtype=torch.float64), rigid(rz_deg=8.0, tx_mm=1.5), rigid(rx_deg=1.5, rz_deg=3.0, ty_mm=0.3)]
-    f = frames(textured(5), views)
-    noise = 0.05 * torch.randn(f.gradients.shape, generator=torch.Generator().manual_seed(1))
-    f = FrameBuilder(Config()).from_gradients((f.gradients + noise).float(), f.contact)
-    kf0_T = [se3.inverse(v) for v in views]  # keyframe k's pose in keyframe 0's frame
-    kfs = [Keyframe(k, 0, f[k], k == 0, torch.eye(4, dtype=torch.float64) if k == 0 else
-                    se3.inverse(kf0_T[k - 1]) @ kf0_T[k]) for k in range(3)]
-    return kfs, torch.stack(kf0_T)
+    """The revisit scene (:func:`tests.loop.revisit.revisit_keyframes`) with slopes carrying
+    i.i.d. noise of 0.05, so the 3000-sample verification is measurably off."""
+    return revisit_keyframes(0.05)
 
 
 def _run(kfs, **posegraph):
