@@ -21,6 +21,8 @@ import numpy as np
 
 from tactile_slam.eval.tracking_metrics import geodesic_deg
 
+REACH_M = 0.03  # sensors more than 30 mm apart cannot share a patch
+
 
 def relative_pose_errors(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: np.ndarray,
                          depth_known: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -105,6 +107,17 @@ def overlap_mm2(height_i: np.ndarray, contact_i: np.ndarray, height_j: np.ndarra
     return float(hit.sum()) * mm_per_px**2
 
 
+def share_patch(i: int, j: int, object_T_sensor: np.ndarray, height: np.ndarray, contact: np.ndarray,
+                 mm_per_px: float, min_overlap_mm2: float) -> bool:
+    """Whether frames i and j touch at least ``min_overlap_mm2`` of the same surface, in
+    both directions (:func:`overlap_mm2`)."""
+    j_T_i = np.linalg.inv(object_T_sensor[j]) @ object_T_sensor[i]
+    if overlap_mm2(height[i], contact[i], height[j], contact[j], j_T_i, mm_per_px) < min_overlap_mm2:
+        return False
+    back = overlap_mm2(height[j], contact[j], height[i], contact[i], np.linalg.inv(j_T_i), mm_per_px)
+    return back >= min_overlap_mm2
+
+
 def gt_loop_pairs(candidates: np.ndarray, object_T_sensor: np.ndarray, height: np.ndarray, contact: np.ndarray,
                   mm_per_px: float, min_overlap_mm2: float = 5.0, min_gap: int = 25) -> np.ndarray:
     """Ground-truth loops among candidate frames: pairs at least ``min_gap`` frames apart
@@ -120,18 +133,51 @@ def gt_loop_pairs(candidates: np.ndarray, object_T_sensor: np.ndarray, height: n
     """
     cand = np.unique(np.asarray(candidates, dtype=np.int64))
     centres = object_T_sensor[cand, :3, 3]
-    reach = 0.03  # sensors more than 30 mm apart cannot share a patch
     out = []
     for a in range(len(cand)):
         for b in range(a + 1, len(cand)):
             i, j = cand[a], cand[b]
-            if j - i < min_gap or np.linalg.norm(centres[a] - centres[b]) > reach:
+            if j - i < min_gap or np.linalg.norm(centres[a] - centres[b]) > REACH_M:
                 continue
-            j_T_i = np.linalg.inv(object_T_sensor[j]) @ object_T_sensor[i]
-            o1 = overlap_mm2(height[i], contact[i], height[j], contact[j], j_T_i, mm_per_px)
-            if o1 < min_overlap_mm2:
-                continue
-            o2 = overlap_mm2(height[j], contact[j], height[i], contact[i], np.linalg.inv(j_T_i), mm_per_px)
-            if min(o1, o2) >= min_overlap_mm2:
+            if share_patch(i, j, object_T_sensor, height, contact, mm_per_px, min_overlap_mm2):
                 out.append((i, j))
     return np.asarray(out, dtype=np.int64).reshape(-1, 2)
+
+
+def joinable_groups(sessions: np.ndarray, object_T_sensor: np.ndarray, height: np.ndarray, contact: np.ndarray,
+                    mm_per_px: float, min_overlap_mm2: float = 5.0) -> np.ndarray:
+    """The groups an ideal loop closure could form from a run's keyframes: sessions joined
+    wherever a keyframe of one and a keyframe of the other touch at least
+    ``min_overlap_mm2`` of the same surface (both directions, as :func:`gt_loop_pairs`).
+    Sessions that share no surface with the rest cannot be placed by touch at all, so
+    this bounds the connected groups, and the reconstruction, of any system on the scan.
+
+    Args:
+        sessions: ``(K,)`` int session of each keyframe.
+        object_T_sensor: ``(K, 4, 4)`` true sensor poses of the keyframes.
+        height: ``(K, H, W)`` px; contact: ``(K, H, W)`` bool.
+
+    Returns:
+        ``(K,)`` int64 group label of each keyframe, ``0 .. G-1``.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    sessions = np.asarray(sessions, dtype=np.int64)
+    if sessions.ndim != 1 or len(sessions) != len(object_T_sensor):
+        raise ValueError(f"expected one session per keyframe pose, got {sessions.shape} for {len(object_T_sensor)}")
+    names, sid = np.unique(sessions, return_inverse=True)
+    centres = object_T_sensor[:, :3, 3]
+    joined: set[tuple[int, int]] = set()
+    for i in range(len(sid)):
+        near = np.linalg.norm(centres[i + 1:] - centres[i], axis=1) <= REACH_M
+        for j in np.flatnonzero(near) + i + 1:
+            pair = (min(sid[i], sid[j]), max(sid[i], sid[j]))
+            if pair[0] == pair[1] or pair in joined:  # one shared patch joins two sessions
+                continue
+            if share_patch(i, j, object_T_sensor, height, contact, mm_per_px, min_overlap_mm2):
+                joined.add(pair)
+    pairs = np.array(sorted(joined), dtype=np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(names), len(names)))
+    _, label = connected_components(graph, directed=False)
+    return label[sid].astype(np.int64)

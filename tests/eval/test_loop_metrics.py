@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tactile_slam.eval.loop_metrics import gt_loop_pairs, loop_precision_recall, overlap_mm2, relative_pose_errors
+from tactile_slam.eval.loop_metrics import (gt_loop_pairs, joinable_groups, loop_precision_recall, overlap_mm2,
+                                           relative_pose_errors)
 
 S_MM = 0.0634
 
@@ -82,3 +83,33 @@ def test_gt_loop_pairs():
     for i, j in pairs:
         assert j - i >= 25
         assert abs(obj[i, 0, 3] - obj[j, 0, 3]) * 1e3 / S_MM <= max_shift_px
+
+
+def _disc_keyframes(x_mm: list[float], radius_mm: float = 2.0):
+    """Flat touches: a contact disc of ``radius_mm`` at the image centre, sensors at
+    ``x_mm`` along the object's x axis. Returns ``(object_T_sensor, height, contact)``."""
+    k = len(x_mm)
+    obj = np.tile(np.eye(4), (k, 1, 1))
+    obj[:, 0, 3] = np.asarray(x_mm) * 1e-3
+    r, c = np.mgrid[:240, :320]
+    disc = np.hypot((c - 159.5) * S_MM, (r - 119.5) * S_MM) <= radius_mm
+    return obj, np.zeros((k, 240, 320)), np.repeat(disc[None], k, axis=0)
+
+
+def test_joinable_groups_join_sessions_that_share_surface():
+    """Sessions 0 (keyframes 0, 1) and 1 (keyframe 2) share the lens of two 2 mm discs
+    1 mm apart (2 r^2 acos(d / 2r) - d/2 sqrt(4 r^2 - d^2) = 8.61 mm^2); session 2 (keyframe 3)
+    is 10 mm away and shares nothing; session 3 (keyframe 4) lies on keyframe 3."""
+    obj, h, c = _disc_keyframes([0.0, 4.0, 5.0, 20.0, 20.0])
+    lens = 8 * np.arccos(0.25) - 0.5 * np.sqrt(15)
+    assert overlap_mm2(h[1], c[1], h[2], c[2], np.linalg.inv(obj[2]) @ obj[1], S_MM) == pytest.approx(lens, rel=0.02)
+    label = joinable_groups(np.array([0, 0, 1, 2, 3]), obj, h, c, S_MM, min_overlap_mm2=5.0)
+    assert label.shape == (5,) and label.dtype == np.int64
+    assert label[0] == label[1] == label[2] and label[3] == label[4] and label[0] != label[3]
+    # asking for more than the lens (but less than a whole disc, 12.57 mm^2) parts sessions 0 and 1
+    part = joinable_groups(np.array([0, 0, 1, 2, 3]), obj, h, c, S_MM, min_overlap_mm2=10.0)
+    assert part[0] == part[1] and part[3] == part[4] and len({part[0], part[2], part[3]}) == 3
+    # keyframes of one session are one group however far apart
+    assert len(set(joinable_groups(np.zeros(5), obj, h, c, S_MM).tolist())) == 1
+    with pytest.raises(ValueError, match="one session per keyframe"):
+        joinable_groups(np.zeros(4), obj, h, c, S_MM)
