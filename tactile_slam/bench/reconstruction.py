@@ -5,13 +5,23 @@ sizes) a hand-held scan is simulated with :mod:`tactile_slam.sim` (``--level``
 gradients: noise-free gradient maps; image: GelSight Mini video through the colour
 model, decoded by the shipped calibration model), the full system
 (:class:`tactile_slam.pipeline.offline.OfflinePipeline`, method ``gelslam``) runs on it,
-and :func:`tactile_slam.recon.reconstruct` meshes the run's keyframes three ways:
+and :func:`tactile_slam.recon.reconstruct` meshes the run's keyframes four ways:
 
 * ``gt_all``: every keyframe of the run, ground-truth poses (the mapping's own limit);
 * ``estimated``: the largest connected group, the poses the system estimated;
 * ``gt_group``: the same group's keyframes with ground-truth poses, so the gap between
   ``gt_all`` and ``gt_group`` is what unconnected sessions cost and the gap between
-  ``gt_group`` and ``estimated`` is what pose error costs.
+  ``gt_group`` and ``estimated`` is what pose error costs;
+* ``gt_joinable``: the largest group an ideal loop closure could form from the run's
+  keyframes (sessions joined wherever two of their keyframes truly share at least 5 mm^2
+  of surface, :func:`tactile_slam.eval.loop_metrics.joinable_groups`), ground-truth
+  poses: the best any system can do on the scan, since sessions that share no surface
+  with the rest cannot be placed by touch.
+
+Each run's ``system`` entry also holds the groups the system formed, those an ideal loop
+closure could form, and the ``revisit_funnel``
+(:func:`tactile_slam.eval.loop_funnel.revisit_funnel`): how many of the pairs that
+truly share surface across sessions reach each stage of loop detection.
 
 Each Poisson mesh is scored with :func:`tactile_slam.eval.recon_metrics.recon_report`
 at the ground-truth placement of its start frame and after ICP; the fused grid mesh
@@ -34,6 +44,8 @@ import torch
 
 from tactile_slam.bench.common import rendered_frames, write_json
 from tactile_slam.config import Config, load_config
+from tactile_slam.eval.loop_funnel import revisit_funnel
+from tactile_slam.eval.loop_metrics import joinable_groups
 from tactile_slam.eval.recon_metrics import recon_report, surface_metrics, touch_poses
 from tactile_slam.geometry.frame import FrameBuilder, crop_to_contact
 from tactile_slam.io import open_source
@@ -46,7 +58,8 @@ from tactile_slam.tracking.keyframe import Keyframe
 
 # The paper's Table VI sizes (mm) of the small and large prints.
 SIZES_MM = {"seed": (9.5, 14.3), "shell": (18.4, 27.6), "dice": (10.0, 15.0), "lime": (15.0, 29.9)}
-VARIANTS = ("gt_all", "estimated", "gt_group")
+VARIANTS = ("gt_all", "estimated", "gt_group", "gt_joinable")
+JOIN_OVERLAP_MM2 = 5.0  # shared surface that lets an ideal loop closure join two sessions
 
 
 def add_arguments(parser) -> None:
@@ -84,14 +97,31 @@ def system_run(episode_dir: Path, run_dir: Path, config: Config) -> tuple[list, 
     return result.keyframes, poses, groups, result.stats
 
 
-def variant_input(variant: str, keyframes: list, est: dict, groups: dict, gt: np.ndarray):
+def joinable_labels(keyframes: list, gt: np.ndarray, config: Config) -> dict:
+    """``{id: label}`` of the groups an ideal loop closure could form from ``keyframes``
+    (:func:`~tactile_slam.eval.loop_metrics.joinable_groups` on their true poses and
+    maps). ``gt``: ``(T, 4, 4)`` object_T_sensor."""
+    height = np.stack([k.frame.height[0].numpy() for k in keyframes])
+    contact = np.stack([k.frame.contact[0].numpy() for k in keyframes])
+    label = joinable_groups(np.array([k.session for k in keyframes]), gt[[k.video_index for k in keyframes]],
+                            height, contact, config.sensor.mm_per_px, JOIN_OVERLAP_MM2)
+    return {k.id: int(g) for k, g in zip(keyframes, label)}
+
+
+def variant_input(variant: str, keyframes: list, est: dict, groups: dict, gt: np.ndarray,
+                  joinable: dict | None = None):
     """Keyframes, ``(K, 4, 4)`` start_T_kf and ``(4, 4)`` ground-truth object_T_start
-    of one variant (see the module docstring). ``gt``: ``(T, 4, 4)`` object_T_sensor."""
+    of one variant (see the module docstring). ``groups``: ``{id: group}`` of the run;
+    ``joinable``: ``{id: label}`` (:func:`joinable_labels`), needed by ``gt_joinable``;
+    ``gt``: ``(T, 4, 4)`` object_T_sensor."""
     if variant == "gt_all":
         kfs = keyframes
     else:
-        label = Counter(groups[k.id] for k in keyframes).most_common(1)[0][0]
-        kfs = [k for k in keyframes if groups[k.id] == label]
+        labels = joinable if variant == "gt_joinable" else groups
+        if labels is None:
+            raise ValueError("the gt_joinable variant needs the joinable groups")
+        label = Counter(labels[k.id] for k in keyframes).most_common(1)[0][0]
+        kfs = [k for k in keyframes if labels[k.id] == label]
     o_T_kf = np.stack([gt[k.video_index] for k in kfs])
     if variant == "estimated":
         poses = torch.stack([est[k.id] for k in kfs])
@@ -139,8 +169,19 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
     gt_mesh = episode.mesh()
     system = {k: run_stats.get(k) for k in ("frames", "contact_frames", "keyframes", "sessions", "groups", "loops",
                                             "coverage_keyframes", "fps")}
+    joinable = joinable_labels(keyframes, episode.object_T_sensor, config)
+    funnel = revisit_funnel(keyframes, episode.object_T_sensor[[k.video_index for k in keyframes]], config,
+                            JOIN_OVERLAP_MM2)
+    system |= {"largest_group": Counter(groups.values()).most_common(1)[0][1],
+               "joinable_groups": len(set(joinable.values())),
+               "joinable_largest": Counter(joinable.values()).most_common(1)[0][1],
+               "revisit_funnel": funnel}
+    print(f"{name:6s} {size_label:5s} {system['sessions']} sessions -> {system['groups']} groups, largest "
+          f"{system['largest_group']} of {len(keyframes)} keyframes; an ideal loop closure: "
+          f"{system['joinable_groups']} groups, largest {system['joinable_largest']}; revisits between sessions "
+          + " -> ".join(f"{k} {v}" for k, v in funnel.items()), flush=True)
     for variant in args.variants:
-        kfs, poses, object_T_start = variant_input(variant, keyframes, est, groups, episode.object_T_sensor)
+        kfs, poses, object_T_start = variant_input(variant, keyframes, est, groups, episode.object_T_sensor, joinable)
         entry = {"object": name, "size": size_label, "size_mm": size, "frames": frames, "level": args.level,
                  "variant": variant,
                  "keyframes": len(kfs), "simulation_s": t1 - t0, "system_s": t2 - t1, "system": system}

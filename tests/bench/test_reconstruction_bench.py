@@ -43,6 +43,7 @@ def test_variants_place_each_keyframe_at_its_ground_truth():
     gt = random_poses(50, 0)  # object_T_sensor per video frame
     kfs = [keyframe(i, v) for i, v in enumerate([3, 7, 12, 20, 31, 44])]
     groups = {0: 5, 1: 9, 2: 9, 3: 5, 4: 9, 5: 2}  # group 9 is the largest
+    joinable = {0: 1, 1: 1, 2: 0, 3: 1, 4: 0, 5: 1}  # an ideal loop closure's largest group: label 1
     # estimates: group 9 in the frame of an arbitrary start pose, with a small error on keyframe 4
     start = random_poses(1, 1)[0]
     est = {k.id: torch.from_numpy(np.linalg.inv(start) @ gt[k.video_index]) for k in kfs}
@@ -50,9 +51,9 @@ def test_variants_place_each_keyframe_at_its_ground_truth():
     err[0, 3] = 1e-4
     est[4] = est[4] @ torch.from_numpy(err)
     for variant in reconstruction.VARIANTS:
-        sel, poses, object_T_start = reconstruction.variant_input(variant, kfs, est, groups, gt)
+        sel, poses, object_T_start = reconstruction.variant_input(variant, kfs, est, groups, gt, joinable)
         ids = [k.id for k in sel]
-        assert ids == ([0, 1, 2, 3, 4, 5] if variant == "gt_all" else [1, 2, 4])
+        assert ids == {"gt_all": [0, 1, 2, 3, 4, 5], "gt_joinable": [0, 1, 3, 5]}.get(variant, [1, 2, 4])
         placed = object_T_start @ poses.numpy()
         expected = gt[[k.video_index for k in sel]]
         if variant == "estimated":  # anchored at the group's first keyframe, the error stays
@@ -61,6 +62,8 @@ def test_variants_place_each_keyframe_at_its_ground_truth():
         else:
             np.testing.assert_allclose(placed, expected, atol=1e-12)
             np.testing.assert_allclose(poses[0].numpy(), np.eye(4), atol=1e-12)
+    with pytest.raises(ValueError, match="joinable"):
+        reconstruction.variant_input("gt_joinable", kfs, est, groups, gt)
 
 
 def test_tiny_run_scores_ground_truth_and_estimated_meshes(tmp_path):
@@ -74,6 +77,13 @@ def test_tiny_run_scores_ground_truth_and_estimated_meshes(tmp_path):
     assert [r["variant"] for r in runs] == list(reconstruction.VARIANTS)
     by = {r["variant"]: r for r in runs}
     assert by["gt_all"]["keyframes"] >= by["gt_group"]["keyframes"] == by["estimated"]["keyframes"] >= 2
+    system = runs[0]["system"]  # the run's groups and the groups an ideal loop closure could form
+    assert system["largest_group"] == by["estimated"]["keyframes"]
+    assert system["joinable_largest"] == by["gt_joinable"]["keyframes"] <= by["gt_all"]["keyframes"]
+    assert 1 <= system["joinable_groups"] <= system["sessions"]
+    funnel = list(system["revisit_funnel"].values())  # each stage counted among the pairs
+    assert len(funnel) == 7 and all(0 <= c <= funnel[0] for c in funnel)
+    assert funnel[4] >= funnel[5] >= funnel[6]  # matched >= verified >= correct
     for r in runs:
         for m in (r["mesh"]["gt_pose"], r["mesh"]["icp"], r["fused"]["gt_pose"]):
             assert all(math.isfinite(m[k]) for k in ("chamfer_mm", "recon_to_gt_mm", "gt_to_recon_mm"))
