@@ -273,6 +273,7 @@ class LoopConfig:
     sift_contrast_threshold: float = 0.02
     sift_octave_layers: int = 3
     sift_max_features: int = 512  # kornia backend only
+    sift_edge_threshold: float = 10.0  # opencv backend only: keypoints on lines are dropped above it
     ransac_iterations: int = 100
     ransac_threshold_px: float = 3.0
     ransac_confidence: float = 0.99

@@ -164,8 +164,10 @@ class LoopDetector:
             raise LoopError(f"loop mode must be one of {MODES}, got {self.mode!r}")
         if lc.min_sift_inliers < 3 or lc.max_candidates < 1 or lc.verify_batch < 1:
             raise LoopError("loop.min_sift_inliers must be >= 3, max_candidates and verify_batch >= 1")
+        if not lc.sift_edge_threshold > 0:
+            raise LoopError(f"loop.sift_edge_threshold must be > 0, got {lc.sift_edge_threshold}")
         self.sift = SiftSettings(lc.sift_backend, lc.sift_contrast_threshold, lc.sift_octave_layers,
-                                 lc.sift_max_features, config.final_erode_px)
+                                 lc.sift_max_features, config.final_erode_px, lc.sift_edge_threshold)
         self.ransac = RansacSettings(lc.min_sift_inliers, lc.ransac_iterations, lc.ransac_threshold_px,
                                      lc.ransac_confidence, lc.ransac_refine_iters, lc.ambiguity_ratio)
         self.nf_config = replace(config.normalflow, ccs_threshold=lc.ccs_threshold, scr_threshold=lc.scr_threshold)

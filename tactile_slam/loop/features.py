@@ -71,6 +71,8 @@ class SiftSettings:
         max_features: upper bound on kornia's keypoints (OpenCV keeps all).
         keypoint_erode: size of the extra square erosion of the contact that keypoints
             must fall inside (px).
+        edge_threshold: OpenCV's ``edgeThreshold`` (opencv backend only): extrema whose
+            principal curvature ratio exceeds it lie on a line and are dropped.
     """
 
     backend: str = "opencv"
@@ -78,6 +80,7 @@ class SiftSettings:
     octave_layers: int = 3
     max_features: int = 512
     keypoint_erode: int = 5
+    edge_threshold: float = 10.0
 
 
 def curvature_image(curvature: torch.Tensor, clip: float) -> torch.Tensor:
@@ -112,8 +115,9 @@ def _check_maps(image: torch.Tensor, contact: torch.Tensor) -> None:
 
 
 @lru_cache(maxsize=4)
-def _opencv_sift(contrast_threshold: float, octave_layers: int) -> cv2.SIFT:
-    return cv2.SIFT_create(nfeatures=0, nOctaveLayers=octave_layers, contrastThreshold=contrast_threshold)
+def _opencv_sift(contrast_threshold: float, octave_layers: int, edge_threshold: float) -> cv2.SIFT:
+    return cv2.SIFT_create(nfeatures=0, nOctaveLayers=octave_layers, contrastThreshold=contrast_threshold,
+                           edgeThreshold=edge_threshold)
 
 
 @lru_cache(maxsize=4)
@@ -125,7 +129,7 @@ def _kornia_sift(max_features: int, device: str):
 
 
 def _detect_opencv(crop: np.ndarray, s: SiftSettings) -> tuple[np.ndarray, np.ndarray]:
-    kps, desc = _opencv_sift(s.contrast_threshold, s.octave_layers).detectAndCompute(crop, None)
+    kps, desc = _opencv_sift(s.contrast_threshold, s.octave_layers, s.edge_threshold).detectAndCompute(crop, None)
     if desc is None or len(kps) == 0:
         return np.zeros((0, 2), np.float32), np.zeros((0, 128), np.float32)
     return np.array([k.pt for k in kps], dtype=np.float32), desc.astype(np.float32)

@@ -277,3 +277,10 @@ def test_a_query_is_extracted_once_between_detect_and_add(scene, monkeypatch):
     det.detect(other, [0], {}, {}, {**scene, 7: other})
     det.add(_kf(8, scene[1].frame))  # not the last query: extracted afresh
     assert calls == [2, 7, 8]
+
+
+def test_edge_threshold_must_be_positive():
+    cfg = Config()
+    cfg.loop.sift_edge_threshold = 0.0
+    with pytest.raises(LoopError, match="sift_edge_threshold"):
+        LoopDetector(cfg)

@@ -10,7 +10,7 @@ import torch
 from tactile_slam.geometry.morphology import mask_bounds
 from tactile_slam.geometry.morphology import erode
 from tactile_slam.loop.features import (
-    FeatureError, Features, SiftSettings, curvature_features, curvature_image, image_features,
+    FeatureError, Features, SiftSettings, curvature_features, curvature_image, detect, image_features,
 )
 from tests.registration.surfaces import Surface, frames, textured
 
@@ -123,3 +123,23 @@ def test_exceptions(textured_frame):
         curvature_image(curv, 0.0)
     with pytest.raises(FeatureError, match="uint8"):
         image_features(torch.zeros(240, 320, 3), contact)
+
+
+def test_edge_threshold_admits_keypoints_on_lines():
+    """Two crossing ridges: OpenCV's edge test keeps only the crossing at the default 10;
+    a higher ``edge_threshold`` also keeps extrema along the ridges (line-like texture,
+    such as a shell's ribs and growth lines)."""
+    r, c = np.mgrid[:240, :320].astype(np.float64)
+    d1 = np.abs(r - 120 - 0.3 * (c - 160)) / np.hypot(1.0, 0.3)  # distance to ridge 1 (px)
+    d2 = np.abs(c - 100 + 0.2 * r) / np.hypot(1.0, 0.2)
+    img = 127 + 60 * np.exp(-d1**2 / 8.0) + 60 * np.exp(-d2**2 / 4.5)
+    image = torch.from_numpy(img.clip(0, 255).astype(np.uint8))
+    contact = torch.zeros(240, 320, dtype=torch.bool)
+    contact[20:220, 20:300] = True
+    default = detect(image, contact, SiftSettings())
+    lines = detect(image, contact, SiftSettings(edge_threshold=80.0))
+    assert len(lines) > 1.5 * len(default) > 0
+    x, y = lines.keypoints[:, 0].double().numpy(), lines.keypoints[:, 1].double().numpy()
+    on_ridge = np.minimum(np.abs(y - 120 - 0.3 * (x - 160)) / np.hypot(1.0, 0.3),
+                          np.abs(x - 100 + 0.2 * y) / np.hypot(1.0, 0.2))
+    assert (on_ridge < 8.0).all()  # DoG extrema sit on a ridge or its flanks
