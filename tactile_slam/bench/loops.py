@@ -39,7 +39,7 @@ import numpy as np
 import torch
 
 from tactile_slam.bench.common import rendered_frames, set_threads, timing_stats, write_json
-from tactile_slam.config import Config
+from tactile_slam.config import Config, load_config
 from tactile_slam.geometry.frame import FrameBuilder, crop_to_contact
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import LoopDetector
@@ -69,6 +69,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend-kinds", nargs="+", default=["scan"])
     p.add_argument("--threads", type=int, default=None,
                    help="torch CPU threads (default: torch's choice; the online back end runs loop detection on 1)")
+    p.add_argument("--config", default=None,
+                   help="YAML config or preset for the tracker, detector and back end (default: GelSight Mini)")
 
 
 # ------------------------------------------------------------------ simulated keyframes
@@ -327,10 +329,11 @@ def backend_comparison(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, o
 
 
 def run(args: argparse.Namespace) -> Path:
-    config = Config()
+    config = load_config(args.config)
     torch.manual_seed(args.seed)
     set_threads(args.threads)
-    results: dict = {"settings": {k: v for k, v in vars(args).items() if k not in ("func",)}, "accuracy": {}}
+    results: dict = {"settings": {k: v for k, v in vars(args).items() if k not in ("func",)},
+                     "config": config.to_dict(), "accuracy": {}}
     first = None
     for obj in args.objects:
         for kind in args.kinds:

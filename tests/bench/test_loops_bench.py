@@ -25,15 +25,18 @@ def test_tracked_keyframes_carry_real_odometry():
 
 def test_backend_section_scores_gate_and_no_gate(tmp_path):
     out = tmp_path / "loops.json"
+    cfg = tmp_path / "edge.yaml"
+    cfg.write_text("loop:\n  sift_edge_threshold: 12.5\n")
     threads = torch.get_num_threads()
     try:
         assert main(["bench", "loops", "--out", str(out), "--objects", "--sizes", "--index-sizes",
                      "--backend-objects", "seed", "--backend-kinds", "tracking", "--frames", "160",
-                     "--threads", "1"]) == 0
+                     "--threads", "1", "--config", str(cfg)]) == 0
     finally:
         torch.set_num_threads(threads)
     doc = json.loads(out.read_text())
     assert doc["machine"]["torch_threads"] == 1  # as the online back end runs it
+    assert doc["results"]["config"]["loop"]["sift_edge_threshold"] == 12.5  # the runs' configuration
     res = doc["results"]["backend"]
     assert set(res) == {"seed/tracking/gate", "seed/tracking/no_gate"}
     for r in res.values():
