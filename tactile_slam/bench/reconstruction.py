@@ -101,8 +101,9 @@ def joinable_labels(keyframes: list, gt: np.ndarray, config: Config) -> dict:
     """``{id: label}`` of the groups an ideal loop closure could form from ``keyframes``
     (:func:`~tactile_slam.eval.loop_metrics.joinable_groups` on their true poses and
     maps). ``gt``: ``(T, 4, 4)`` object_T_sensor."""
-    height = np.stack([k.frame.height[0].numpy() for k in keyframes])
-    contact = np.stack([k.frame.contact[0].numpy() for k in keyframes])
+    frames = [k.frame for k in keyframes]  # expanded once per keyframe
+    height = np.stack([f.height[0].numpy() for f in frames])
+    contact = np.stack([f.contact[0].numpy() for f in frames])
     label = joinable_groups(np.array([k.session for k in keyframes]), gt[[k.video_index for k in keyframes]],
                             height, contact, config.sensor.mm_per_px, JOIN_OVERLAP_MM2)
     return {k.id: int(g) for k, g in zip(keyframes, label)}

@@ -18,6 +18,8 @@ of frame j's sensor in frame i's sensor frame, metres). Against the ground truth
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
 
 from tactile_slam.eval.tracking_metrics import geodesic_deg
 
@@ -160,9 +162,6 @@ def joinable_groups(sessions: np.ndarray, object_T_sensor: np.ndarray, height: n
     Returns:
         ``(K,)`` int64 group label of each keyframe, ``0 .. G-1``.
     """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
-
     sessions = np.asarray(sessions, dtype=np.int64)
     if sessions.ndim != 1 or len(sessions) != len(object_T_sensor):
         raise ValueError(f"expected one session per keyframe pose, got {sessions.shape} for {len(object_T_sensor)}")
