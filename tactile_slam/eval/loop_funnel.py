@@ -60,6 +60,9 @@ def revisit_funnel(keyframes: list, object_T_sensor: np.ndarray, config: Config,
     """
     if len(keyframes) != len(object_T_sensor):
         raise ValueError(f"expected one pose per keyframe, got {len(object_T_sensor)} for {len(keyframes)}")
+    out = dict.fromkeys(STAGES, 0)
+    if not keyframes:
+        return out
     det = LoopDetector(config)
     frames = [k.frame for k in keyframes]
     height = np.stack([f.height[0].cpu().numpy() for f in frames])
@@ -67,7 +70,6 @@ def revisit_funnel(keyframes: list, object_T_sensor: np.ndarray, config: Config,
     feats = [det.extract(k) for k in keyframes]
     s = config.sensor.mm_per_px
     need = det.ransac.min_inliers
-    out = dict.fromkeys(STAGES, 0)
     for t in range(len(keyframes)):
         for r in range(t):
             if keyframes[r].session == keyframes[t].session:

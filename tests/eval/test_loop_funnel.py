@@ -52,6 +52,7 @@ def test_pairs_within_a_session_and_textureless_touches_are_not_counted_as_reach
 
 
 def test_one_pose_per_keyframe():
+    assert revisit_funnel([], np.zeros((0, 4, 4)), Config()) == dict.fromkeys(STAGES, 0)  # no keyframes: nothing
     kfs, truth = three_sessions()
     with pytest.raises(ValueError, match="one pose per keyframe"):
         revisit_funnel(kfs, truth[:2], Config())

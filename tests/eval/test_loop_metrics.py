@@ -113,3 +113,4 @@ def test_joinable_groups_join_sessions_that_share_surface():
     assert len(set(joinable_groups(np.zeros(5), obj, h, c, S_MM).tolist())) == 1
     with pytest.raises(ValueError, match="one session per keyframe"):
         joinable_groups(np.zeros(4), obj, h, c, S_MM)
+    assert joinable_groups(np.zeros(0), obj[:0], h[:0], c[:0], S_MM).shape == (0,)
