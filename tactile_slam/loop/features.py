@@ -10,8 +10,9 @@ shape is not a property of the surface.
 
 Two SIFT backends:
 
-* ``"opencv"`` (default): ``cv2.SIFT`` with ``contrastThreshold`` 0.02 and 3 octave
-  layers, as in the public code. Low-contrast curvature images need the low threshold.
+* ``"opencv"`` (default): ``cv2.SIFT`` with ``contrastThreshold`` 0.02, 3 octave
+  layers and ``edgeThreshold`` 10, as in the public code. Low-contrast curvature images
+  need the low threshold.
 * ``"kornia"``: ``kornia.feature.SIFTFeatureScaleSpace`` (DoG scale space, refined
   extrema, SIFT descriptors), keeping the ``max_features`` strongest responses above the
   same contrast threshold. Device-agnostic but slower on CPU (see docs/loops.md).
