@@ -21,7 +21,9 @@ and :func:`tactile_slam.recon.reconstruct` meshes the run's keyframes four ways:
 Each run's ``system`` entry also holds the groups the system formed, those an ideal loop
 closure could form, and the ``revisit_funnel``
 (:func:`tactile_slam.eval.loop_funnel.revisit_funnel`): how many of the pairs that
-truly share surface across sessions reach each stage of loop detection.
+truly share surface across sessions reach each stage of loop detection, and the
+``loop_precision`` of the run's accepted loops against ground truth
+(:func:`tactile_slam.cli.eval.loop_report`: a loop is correct within 1 deg and 0.3 mm).
 
 Each Poisson mesh is scored with :func:`tactile_slam.eval.recon_metrics.recon_report`
 at the ground-truth placement of its start frame and after ICP; the fused grid mesh
@@ -44,6 +46,7 @@ import torch
 
 from tactile_slam.bench.common import rendered_frames, write_json
 from tactile_slam.config import Config, load_config
+from tactile_slam.cli.eval import loop_report
 from tactile_slam.eval.loop_funnel import revisit_funnel
 from tactile_slam.eval.loop_metrics import joinable_groups
 from tactile_slam.eval.recon_metrics import recon_report, surface_metrics, touch_poses
@@ -176,11 +179,14 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
     system |= {"largest_group": Counter(groups.values()).most_common(1)[0][1],
                "joinable_groups": len(set(joinable.values())),
                "joinable_largest": Counter(joinable.values()).most_common(1)[0][1],
-               "revisit_funnel": funnel}
+               "revisit_funnel": funnel,
+               "loop_precision": loop_report(run_dir, episode.object_T_sensor)}
     print(f"{name:6s} {size_label:5s} {system['sessions']} sessions -> {system['groups']} groups, largest "
           f"{system['largest_group']} of {len(keyframes)} keyframes; an ideal loop closure: "
           f"{system['joinable_groups']} groups, largest {system['joinable_largest']}; revisits between sessions "
-          + " -> ".join(f"{k} {v}" for k, v in funnel.items()), flush=True)
+          + " -> ".join(f"{k} {v}" for k, v in funnel.items())
+          + f"; loops {system['loop_precision']['correct']} of {system['loop_precision']['reported']} correct",
+          flush=True)
     for variant in args.variants:
         kfs, poses, object_T_start = variant_input(variant, keyframes, est, groups, episode.object_T_sensor, joinable)
         entry = {"object": name, "size": size_label, "size_mm": size, "frames": frames, "level": args.level,

@@ -84,6 +84,9 @@ def test_tiny_run_scores_ground_truth_and_estimated_meshes(tmp_path):
     funnel = list(system["revisit_funnel"].values())  # each stage counted among the pairs
     assert len(funnel) == 7 and all(0 <= c <= funnel[0] for c in funnel)
     assert funnel[4] >= funnel[5] >= funnel[6]  # matched >= verified >= correct
+    loops = json.loads((tmp_path / "work" / "dice_small" / "run" / "loops.json").read_text())
+    precision = system["loop_precision"]  # every accepted loop scored against the truth
+    assert precision["reported"] == len(loops) and 0 <= precision["correct"] <= len(loops)
     for r in runs:
         for m in (r["mesh"]["gt_pose"], r["mesh"]["icp"], r["fused"]["gt_pose"]):
             assert all(math.isfinite(m[k]) for k in ("chamfer_mm", "recon_to_gt_mm", "gt_to_recon_mm"))
