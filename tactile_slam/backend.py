@@ -9,8 +9,11 @@ the group's root session) up to date. Per keyframe (offline step order of method
 1. insert the node with its chained initial value, and its prior (session head) or
    odometry factor;
 2. detect loops against the *active coverage* keyframes, as the coverage set was before
-   this keyframe; for loops between two groups that still lack a second query keyframe,
-   probe a predicted pair (``loop.probes``, :mod:`tactile_slam.loop.probe`);
+   this keyframe; settle them from other starts (:mod:`tactile_slam.loop.ambiguity`: loops
+   between groups that verify elsewhere are marked ambiguous, and loops that stray from the
+   estimate or join groups move to the best-scoring alignment nearby, ``loop.best_nearby``);
+   for loops between two groups that still lack a second query keyframe, probe a predicted
+   pair (``loop.probes``, :mod:`tactile_slam.loop.probe`);
 3. decide which verified loops enter the graph (:class:`~tactile_slam.loop.consistency.LoopGate`,
    ``loop.consistency``): a loop within the keyframe's group that agrees with the current
    estimate within the drift tolerance is accepted, one far beyond it rejected; the others,
@@ -43,7 +46,7 @@ import numpy as np
 import torch
 
 from tactile_slam.config import Config
-from tactile_slam.loop.ambiguity import best, elsewhere, starts
+from tactile_slam.loop.ambiguity import best, elsewhere, nearby, starts
 from tactile_slam.loop.consistency import DriftModel, LoopGate
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import Loop, LoopDetector
@@ -54,6 +57,7 @@ from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.incremental import IncrementalSolver
 from tactile_slam.posegraph.sessions import SessionGroups
 from tactile_slam.registration.refine import refine_edges
+from tactile_slam.registration.result import pose_error
 from tactile_slam.tracking.keyframe import Keyframe
 
 
@@ -67,7 +71,7 @@ class BackEndStats:
     refined: int = 0  # loops re-measured (refinements that failed their checks keep the first value)
     refine_failed: int = 0
     ambiguous_loops: int = 0  # loops between groups whose pair also verified elsewhere (held as repetitive)
-    moved_loops: int = 0  # loops between groups moved to a better-scoring alignment nearby (with probes)
+    moved_loops: int = 0  # loops moved to a better-scoring alignment nearby (loop.best_nearby, or probes)
     probes: int = 0  # predicted pairs verified for loops waiting between groups
     probe_loops: int = 0  # of them, verified (they still pass the loop gate like any loop)
     probes_ambiguous: int = 0  # verified, but an alternative start verified elsewhere too
@@ -119,6 +123,9 @@ class BackEnd:
             raise ValueError(f"posegraph.refine_n_samples must be >= 1 or None, got {n}")
         if config.loop.probes < 0:
             raise ValueError(f"loop.probes must be >= 0, got {config.loop.probes}")
+        if not (config.loop.best_nearby_rot_deg >= 0.0 and config.loop.best_nearby_trans_mm >= 0.0):
+            raise ValueError(f"loop.best_nearby_rot_deg and best_nearby_trans_mm must be >= 0, got "
+                             f"{config.loop.best_nearby_rot_deg} and {config.loop.best_nearby_trans_mm}")
         self.config = config
         self.graph = PoseGraph(config.posegraph)
         self.solver = IncrementalSolver(self.graph, config.posegraph)
@@ -232,39 +239,78 @@ class BackEnd:
         return self.keyframes[i].depth_known and self.keyframes[j].depth_known
 
     def _check_ambiguity(self, kf: Keyframe, loops: list[Loop]) -> list[Loop]:
-        """``loops`` of query ``kf``, those between two groups marked ``ambiguous`` when their
-        pair also verifies from an alternative start at another pose
-        (:mod:`tactile_slam.loop.ambiguity`, ``loop.check_ambiguity``); one NormalFlow batch
-        with the query as the shared reference. With probes on, such loops first move to
-        the best nearby alignment (:func:`~tactile_slam.loop.ambiguity.best`): a loop one
-        period off on ribs predicts probes one period off, which verify there."""
+        """``loops`` of query ``kf`` settled by NormalFlow from other starts
+        (:mod:`tactile_slam.loop.ambiguity`), in batches with the query as the shared reference.
+
+        * Within the query's group (``loop.best_nearby``): a loop that differs from the
+          estimate's prediction by more than ``loop.best_nearby_rot_deg`` or
+          ``best_nearby_trans_mm`` moves to the verified alignment with the highest CCS among
+          its pose and its shifts by the gate's base translation tolerance
+          (:func:`~tactile_slam.loop.ambiguity.nearby`). On ribs a fraction of a millimetre
+          apart, a loop one period off verifies and passes the gate (its error is inside the
+          drift tolerance); the near start one period over reaches the truth, which scores
+          higher. A loop closer to the prediction cannot be false where the estimate is
+          right, so it is taken as measured.
+        * Between two groups (``loop.check_ambiguity``): marked ``ambiguous`` when the pair
+          also verifies from an alternative start at another pose. With
+          ``loop.best_nearby`` (or probes) such loops first move to the best nearby
+          alignment (:func:`~tactile_slam.loop.ambiguity.best`): a loop one period off on
+          ribs predicts probes one period off, which verify there."""
         fp = self.detector.footprint(kf)
-        if (not self.config.loop.check_ambiguity or self.gate is None or self.detector.mode == "only_sift"
-                or fp is None or fp.radius <= 0.0):
+        if self.gate is None or self.detector.mode == "only_sift" or fp is None or fp.radius <= 0.0:
             return loops
-        group_of = self.sessions.group_of
-        check = [i for i, lp in enumerate(loops) if not lp.repetitive and group_of(lp.ref_id) != group_of(kf.id)]
-        if not check:
-            return loops
-        near = self._near_m() if self.config.loop.probes else None
-        inits = torch.cat([starts(se3.inverse(loops[i].ref_T_tar.double()), fp.centre, fp.radius, near) for i in check])
-        S = len(inits) // len(check)
-        res = self.detector.verify(kf, [self.keyframes[loops[i].ref_id] for i in check for _ in range(S)], inits,
-                                   exhaustive=True)
-        q_T_c = res.tar_T_ref.double().cpu().reshape(len(check), S, 4, 4)
-        ok, ccs, scr = (x.cpu().reshape(len(check), S) for x in (res.ok, res.ccs, res.scr))
-        at = best(ok, ccs) if near is not None else torch.zeros(len(check), dtype=torch.long)
-        flag = elsewhere(q_T_c, ok, self.gate.model, at, near=False).tolist()
+        lc, group_of = self.config.loop, self.sessions.group_of
+        near = self._near_m() if lc.best_nearby or lc.probes else None
         out = list(loops)
-        for j, (i, amb) in enumerate(zip(check, flag)):
-            b = int(at[j])
-            if b:
-                out[i] = replace(out[i], ref_T_tar=se3.inverse(q_T_c[j, b]), ccs=float(ccs[j, b]), scr=float(scr[j, b]))
-                self.stats.moved_loops += 1
-            if amb:
-                out[i] = replace(out[i], ambiguous=True)
-        self.stats.ambiguous_loops += sum(flag)
+        across = [i for i, lp in enumerate(loops) if group_of(lp.ref_id) != group_of(kf.id)]
+        check = [i for i in across if not loops[i].repetitive] if lc.check_ambiguity else []
+        within = [i for i, lp in enumerate(loops) if group_of(lp.ref_id) == group_of(kf.id)] if lc.best_nearby else []
+        if within:
+            pred = torch.stack([se3.inverse(self.graph.pose(loops[i].ref_id)) @ self.graph.pose(kf.id) for i in within])
+            rot, trans = pose_error(torch.stack([loops[i].ref_T_tar.double() for i in within]), pred)
+            within = [i for i, r, t in zip(within, rot.tolist(), trans.tolist())
+                      if r > lc.best_nearby_rot_deg or t > lc.best_nearby_trans_mm]
+        if check:
+            inits = torch.cat([starts(se3.inverse(loops[i].ref_T_tar.double()), fp.centre, fp.radius, near)
+                               for i in check])
+            q_T_c, ok, ccs, scr = self._verify_starts(kf, [loops[i].ref_id for i in check], inits, exhaustive=True)
+            at = best(ok, ccs) if near is not None else torch.zeros(len(check), dtype=torch.long)
+            flag = elsewhere(q_T_c, ok, self.gate.model, at, near=False).tolist()
+            for j, (i, amb) in enumerate(zip(check, flag)):
+                out[i] = self._moved(out[i], q_T_c[j], ccs[j], scr[j], int(at[j]))
+                if amb:
+                    out[i] = replace(out[i], ambiguous=True)
+            self.stats.ambiguous_loops += sum(flag)
+        if within:  # the loop's own verification competes with its four near starts
+            own = torch.stack([se3.inverse(loops[i].ref_T_tar.double()) for i in within])
+            q_T_c, ok, ccs, scr = self._verify_starts(kf, [loops[i].ref_id for i in within],
+                                                      torch.cat([nearby(T, near) for T in own]), exhaustive=False)
+            q_T_c = torch.cat([own[:, None], q_T_c], dim=1)
+            ok = torch.cat([torch.ones(len(within), 1, dtype=torch.bool), ok.bool()], dim=1)
+            ccs, scr = (torch.cat([torch.tensor([[getattr(loops[i], k)] for i in within], dtype=torch.float64),
+                                   x.double()], dim=1) for k, x in (("ccs", ccs), ("scr", scr)))
+            at = best(ok, ccs, cols=range(5))
+            for j, i in enumerate(within):
+                out[i] = self._moved(out[i], q_T_c[j], ccs[j], scr[j], int(at[j]))
         return out
+
+    def _verify_starts(self, kf: Keyframe, ref_ids: list[int], inits: torch.Tensor, exhaustive: bool):
+        """NormalFlow of query ``kf`` against each keyframe of ``ref_ids`` from its ``S``
+        starts (``inits``: ``(B * S, 4, 4)``, ``S`` consecutive per keyframe): ``(B, S, 4, 4)``
+        ``query_T_candidate`` and ``(B, S)`` ok, CCS and SCR, on the CPU."""
+        S = len(inits) // len(ref_ids)
+        res = self.detector.verify(kf, [self.keyframes[r] for r in ref_ids for _ in range(S)], inits,
+                                   exhaustive=exhaustive)
+        return (res.tar_T_ref.double().cpu().reshape(len(ref_ids), S, 4, 4),
+                *(x.cpu().reshape(len(ref_ids), S) for x in (res.ok, res.ccs, res.scr)))
+
+    def _moved(self, loop: Loop, q_T_c: torch.Tensor, ccs: torch.Tensor, scr: torch.Tensor, b: int) -> Loop:
+        """``loop`` at the result of start ``b`` (``q_T_c``: ``(S, 4, 4)``; ``ccs``, ``scr``:
+        ``(S,)``); unchanged for the first start."""
+        if not b:
+            return loop
+        self.stats.moved_loops += 1
+        return replace(loop, ref_T_tar=se3.inverse(q_T_c[b]), ccs=float(ccs[b]), scr=float(scr[b]))
 
     def _near_m(self) -> float:
         """The near shift of :func:`~tactile_slam.loop.ambiguity.starts`: the gate's base

@@ -312,6 +312,15 @@ class LoopConfig:
     # or a quarter/half turn round, at another pose (tactile_slam/loop/ambiguity.py), are
     # held like repetitive ones (trust_repetitive trusts both)
     check_ambiguity: bool = True
+    # verified loops move to the verified alignment with the highest CCS among their pose and
+    # its shifts by drift_base_trans_mm along +-x and +-y: between groups (with
+    # check_ambiguity), and within a group when they differ from the estimate's prediction by
+    # more than best_nearby_rot_deg or best_nearby_trans_mm (method.md's release gate for a
+    # false loop; 0, 0: every loop); on ribs closer than the gate's tolerance a loop one
+    # period off verifies and would pass it (tactile_slam/loop/ambiguity.py, docs/loops.md)
+    best_nearby: bool = True
+    best_nearby_rot_deg: float = 1.0
+    best_nearby_trans_mm: float = 0.3
     # probes (tactile_slam/loop/probe.py): per keyframe, up to this many pairs of groups whose
     # waiting loops come from fewer than merge_min_pairs query keyframes get one predicted
     # keyframe pair verified by NormalFlow, a second query for the gate; joins more sessions

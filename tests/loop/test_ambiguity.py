@@ -1,5 +1,6 @@
-"""Alternative starts (tactile_slam/loop/ambiguity.py) and the back end holding loops
-between groups whose pair also verifies elsewhere (loop.check_ambiguity)."""
+"""Alternative starts (tactile_slam/loop/ambiguity.py), the back end holding loops
+between groups whose pair also verifies elsewhere (loop.check_ambiguity), and loops moving
+to the best nearby alignment (loop.best_nearby)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,9 @@ import torch
 
 from tactile_slam.backend import BackEnd
 from tactile_slam.config import Config
-from tactile_slam.loop.ambiguity import NEAR, best, elsewhere, starts
+from tactile_slam.loop.ambiguity import NEAR, best, elsewhere, nearby, starts
 from tactile_slam.loop.consistency import DriftModel
-from tactile_slam.loop.detector import LoopDetector
+from tactile_slam.loop.detector import Loop, LoopDetector
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.result import pose_error
 from tactile_slam.tracking.keyframe import Keyframe
@@ -64,7 +65,7 @@ def test_best_takes_the_highest_verified_ccs_among_the_first_and_near_starts():
     nan = ccs[1:2].clone()  # all equal but a far start: the first
     nan[0, 8] = math.nan
     assert best(ok[:1], nan).tolist() == [0]
-    with pytest.raises(ValueError, match="S >= 12"):
+    with pytest.raises(ValueError, match="S > 11"):
         best(ok[:, :8], ccs[:, :8])
 
 
@@ -88,9 +89,9 @@ def test_elsewhere_needs_an_alternative_verified_beyond_the_base_tolerance():
         elsewhere(T[:, :3], ok, MODEL)
 
 
-def _backend(kfs, check: bool, trust: bool = False) -> BackEnd:
+def _backend(kfs, check: bool, trust: bool = False, near: bool = True) -> BackEnd:
     cfg = Config()
-    be = BackEnd(replace(cfg, loop=replace(cfg.loop, check_ambiguity=check, trust_repetitive=trust)))
+    be = BackEnd(replace(cfg, loop=replace(cfg.loop, check_ambiguity=check, trust_repetitive=trust, best_nearby=near)))
     for k in kfs[:3]:
         be.add(k)
     return be
@@ -101,19 +102,26 @@ def test_loop_between_groups_on_a_texture_that_verifies_elsewhere_is_held():
     session 0 is right, but the pair also verifies from a start half a contact away (12 deg,
     2 mm off); it cannot say where the touch was, so it is dropped between groups like a
     repetitive loop, or kept waiting with ``trust_repetitive``; without the check it waits."""
-    kfs, _ = _sessions(textured(0))
+    kfs, kf0_T = _sessions(textured(0))
     checked, unchecked, trusted = _backend(kfs, True), _backend(kfs, False), _backend(kfs, True, trust=True)
     assert checked.stats.ambiguous_loops == 1 and checked.gate.pending == [] and checked.gate.stats.repetitive == 1
     assert unchecked.stats.ambiguous_loops == 0 and [p.b_id for p in unchecked.gate.pending] == [2]
     assert trusted.stats.ambiguous_loops == 1 and [p.b_id for p in trusted.gate.pending] == [2]
     assert trusted.gate.pending[0].loop.ambiguous and trusted.gate.pending[0].loop.to_dict()["ambiguous"] is True
     assert checked.summary()["ambiguous_loops"] == 1
-    assert checked.stats.moved_loops == 0  # without probes the loop keeps its measurement
+    # the loop moved to the best-scoring alignment nearby, no farther from the truth;
+    # without best_nearby (and probes) it keeps its measurement
+    assert checked.stats.moved_loops == 1 and _backend(kfs, True, near=False).stats.moved_loops == 0
+    p = trusted.gate.pending[0]
+    held = _backend(kfs, True, trust=True, near=False).gate.pending[0]
+    truth = se3.inverse(kf0_T[p.a_id]) @ kf0_T[p.b_id]
+    (rot, trans), (rot0, trans0) = (pose_error(x.a_T_b.double()[None], truth[None]) for x in (p, held))
+    assert float(trans) <= float(trans0) + 1e-5 and float(rot) <= float(rot0) + 0.05
 
 
 def test_the_alternatives_are_verified_without_the_stall_check(monkeypatch):
     """An alternative start that verifies only after a slow climb must still count, so the
-    check's batch (8 starts for the one loop between groups) verifies exhaustively, while
+    check's batch (12 starts for the one loop between groups) verifies exhaustively, while
     detection's own verification keeps the stall check."""
     kfs, _ = _sessions(textured(0))
     calls, verify = [], LoopDetector.verify
@@ -125,7 +133,7 @@ def test_the_alternatives_are_verified_without_the_stall_check(monkeypatch):
     monkeypatch.setattr(LoopDetector, "verify", spy)
     be = _backend(kfs, True)
     assert be.stats.ambiguous_loops == 1
-    assert (8, True) in calls and all(not exhaustive for n, exhaustive in calls if n != 8)
+    assert (12, True) in calls and all(not exhaustive for n, exhaustive in calls if n != 12)
 
 
 def test_loop_between_groups_on_random_bumps_is_not_held():
@@ -164,3 +172,91 @@ def test_best_finds_the_alignment_one_rib_over_that_a_start_one_period_off_misse
         b = int(best(res.ok[None], res.ccs[None])[0])
         assert b in range(NEAR.start, NEAR.stop) and float(res.ccs[b]) > float(res.ccs[0])
         assert float(rot[b]) < 0.05 and float(trans[b]) < 0.01
+
+
+def test_nearby_are_the_near_shifts_of_the_pose():
+    q_T_c = rigid(rx_deg=2.0, rz_deg=10.0, tx_mm=0.4, ty_mm=-0.3)
+    out = nearby(q_T_c, 0.5e-3)
+    assert out.shape == (4, 4, 4) and out.dtype == torch.float64
+    full = starts(q_T_c, torch.zeros(3, dtype=torch.float64), 2.0e-3, 0.5e-3)
+    torch.testing.assert_close(out, full[NEAR])
+    torch.testing.assert_close(out[:, :3, :3], q_T_c[:3, :3].expand(4, 3, 3))  # shifted, not turned
+    steps = (out[:, :3, 3] - q_T_c[:3, 3]).norm(dim=1)
+    torch.testing.assert_close(steps, torch.full((4,), 0.5e-3, dtype=torch.float64))
+    assert best(torch.ones(1, 5, dtype=torch.bool), torch.tensor([[0.9, 0.8, 0.95, 0.9, 0.7]]),
+                cols=range(5)).tolist() == [2]
+    for bad in (0.0, -1e-3, math.nan):
+        with pytest.raises(ValueError, match="near shift"):
+            nearby(q_T_c, bad)
+    with pytest.raises(ValueError, match="4, 4"):
+        nearby(q_T_c[:3], 0.5e-3)
+    with pytest.raises(ValueError, match="S > 4"):
+        best(torch.ones(1, 4, dtype=torch.bool), torch.ones(1, 4), cols=range(5))
+
+
+@pytest.mark.parametrize("near, trans_mm, moved", [(True, 0.3, True), (True, 0.0, True), (False, 0.3, False),
+                                                   (True, 1.0, False)])
+def test_loop_within_a_group_one_rib_off_enters_the_graph_at_the_truth(monkeypatch, near, trans_mm, moved):
+    """Ribs 0.45 mm apart on random bumps, one session: keyframe 2's loop to keyframe 0
+    measured one rib off verifies, and agrees with the odometry within the gate's drift
+    tolerance, so the gate accepts it. With ``best_nearby`` it differs from the prediction
+    by more than 0.3 mm, so it first moves to the near start that reaches the truth;
+    without, or when the loop is within ``best_nearby_trans_mm`` of the prediction, it
+    enters the graph one rib off (the refinement over every contact pixel stays there too)."""
+    lam = 0.45e-3
+    views = [EYE, rigid(rz_deg=5.0, tx_mm=1.2), rigid(rz_deg=4.0, tx_mm=0.3, ty_mm=-0.2)]  # 0's coordinates into k's
+    f = frames(replace(speckled(0), waves=[(30e-6, lam, 0.0, 0.0)]), views)
+    kf0_T = torch.stack([se3.inverse(v) for v in views])
+    kfs = [Keyframe(k, 0, f[k], k == 0, EYE if k == 0 else se3.inverse(kf0_T[k - 1]) @ kf0_T[k]) for k in range(3)]
+    off = se3.inverse(rigid(tx_mm=lam * 1e3) @ views[2])  # keyframe 2 in keyframe 0, one rib off
+    detect = LoopDetector.detect
+
+    def one_rib_off(self, kf, *args):
+        found = detect(self, kf, *args)
+        return [Loop(0, 2, off, 0.9, 0.9, 20, views[2], False)] if kf.id == 2 else found
+
+    monkeypatch.setattr(LoopDetector, "detect", one_rib_off)
+    cfg = Config()
+    be = BackEnd(replace(cfg, loop=replace(cfg.loop, best_nearby=near, best_nearby_trans_mm=trans_mm,
+                                           best_nearby_rot_deg=5.0 if trans_mm > 0.5 else 1.0)))
+    for k in kfs:
+        be.add(k)
+    (loop,) = [lp for lp in be.loops if (lp.ref_id, lp.tar_id) == (0, 2)]
+    rot, trans = pose_error(loop.ref_T_tar.double()[None], kf0_T[2][None])
+    if moved:
+        assert be.stats.moved_loops == 1 and float(trans) < 0.01 and float(rot) < 0.05  # mm, deg
+    else:
+        assert be.stats.moved_loops == 0 and float(trans) > 0.3
+
+
+def test_loops_within_a_group_that_agree_with_the_estimate_are_not_verified_again(monkeypatch):
+    """One session on random bumps whose third keyframe returns near the first: its loop
+    agrees with the odometry (exact here) to well within 1 deg / 0.3 mm, so it is taken as
+    measured; with both thresholds 0 it is verified from its four near starts as well, and
+    stays where it was (the bumps have one alignment)."""
+    views = [EYE, rigid(rz_deg=5.0, tx_mm=1.2), rigid(rz_deg=4.0, tx_mm=0.3, ty_mm=-0.2)]
+    f = frames(speckled(0), views)
+    kf0_T = torch.stack([se3.inverse(v) for v in views])
+    kfs = [Keyframe(k, 0, f[k], k == 0, EYE if k == 0 else se3.inverse(kf0_T[k - 1]) @ kf0_T[k]) for k in range(3)]
+    calls, verify = [], LoopDetector.verify
+
+    def spy(self, query, refs, init, exhaustive=False):
+        calls.append(len(refs))
+        return verify(self, query, refs, init, exhaustive)
+
+    monkeypatch.setattr(LoopDetector, "verify", spy)
+    found = {}
+    for limits in ((1.0, 0.3), (0.0, 0.0)):
+        cfg, calls[:] = Config(), []
+        be = BackEnd(replace(cfg, loop=replace(cfg.loop, best_nearby_rot_deg=limits[0],
+                                               best_nearby_trans_mm=limits[1])))
+        for k in kfs:
+            be.add(k)
+        (loop,) = [lp for lp in be.loops if (lp.ref_id, lp.tar_id) == (0, 2)]
+        found[limits] = (list(calls), loop.ref_T_tar)
+    (strict, T), (every, T0) = found[(1.0, 0.3)], found[(0.0, 0.0)]
+    assert 4 not in strict and every.count(4) == 1 and len(every) == len(strict) + 1
+    rot, trans = pose_error(T0.double()[None], T.double()[None])
+    assert float(rot) < 0.05 and float(trans) < 0.01  # deg, mm
+    with pytest.raises(ValueError, match="best_nearby"):
+        BackEnd(replace(Config(), loop=replace(Config().loop, best_nearby_trans_mm=-0.1)))
