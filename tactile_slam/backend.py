@@ -185,7 +185,7 @@ class BackEnd:
                 eligible = [k for k in self.coverage.active if k in self.detector]
                 loops = self.detector.detect(kf, eligible, self._group_view, self._pose_view, self.keyframes)
             self.detector.add(kf)
-            loops = self._check_ambiguity(kf, loops)
+            loops = self._settle(kf, loops)
             loops = loops + self._probe(loops)
             loops = [lp if self._depth_known(lp.ref_id, lp.tar_id) else replace(lp, depth_known=False) for lp in loops]
         t1 = time.perf_counter()
@@ -238,7 +238,7 @@ class BackEnd:
         """Whether both keyframes' heights have a known zero (:attr:`Keyframe.depth_known`)."""
         return self.keyframes[i].depth_known and self.keyframes[j].depth_known
 
-    def _check_ambiguity(self, kf: Keyframe, loops: list[Loop]) -> list[Loop]:
+    def _settle(self, kf: Keyframe, loops: list[Loop]) -> list[Loop]:
         """``loops`` of query ``kf`` settled by NormalFlow from other starts
         (:mod:`tactile_slam.loop.ambiguity`), in batches with the query as the shared reference.
 
