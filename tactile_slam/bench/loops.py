@@ -151,6 +151,20 @@ def loop_error(lp, true_ref_T_tar: torch.Tensor, kmap: dict[int, Keyframe]) -> t
     return float(rot), float(trans)
 
 
+def wrong_loop(lp, obj_T: torch.Tensor, kmap: dict[int, Keyframe]) -> dict | None:
+    """``None`` when the loop is correct (within 1 deg and 0.3 mm of the truth, method.md's
+    release gate), else a record of it for the JSON.
+
+    Args:
+        obj_T: ``(K, 4, 4)`` object-from-sensor pose of each keyframe id, ground truth.
+    """
+    rot, trans = loop_error(lp, se3.inverse(obj_T[lp.ref_id]) @ obj_T[lp.tar_id], kmap)
+    if rot <= 1.0 and trans <= 0.3:
+        return None
+    return {"ref": lp.ref_id, "tar": lp.tar_id, "rot_deg": rot, "trans_mm": trans,
+            "ccs": lp.ccs, "scr": lp.scr, "inliers": lp.inliers}
+
+
 def score_backend(kfs: list[Keyframe], obj_T_frames: np.ndarray, config: Config,
                   revisits: set[tuple[int, int]]) -> dict:
     """Run the back end over tracked keyframes; score the loops in its final graph."""
@@ -167,13 +181,12 @@ def score_backend(kfs: list[Keyframe], obj_T_frames: np.ndarray, config: Config,
     correct, wrong, hit = 0, [], set()
     kmap = {k.id: k for k in kfs}
     for lp in be.loops:
-        rot, trans = loop_error(lp, se3.inverse(obj_T[lp.ref_id]) @ obj_T[lp.tar_id], kmap)
-        if rot <= 1.0 and trans <= 0.3:
+        record = wrong_loop(lp, obj_T, kmap)
+        if record is None:
             correct += 1
             hit.add(lp.tar_id)
         else:
-            wrong.append({"ref": lp.ref_id, "tar": lp.tar_id, "rot_deg": float(rot), "trans_mm": float(trans),
-                          "ccs": lp.ccs, "inliers": lp.inliers})
+            wrong.append(record)
     queries = {t for _, t in revisits}
     sizes = sorted((be.sessions.size(g) for g in be.sessions.groups), reverse=True)
     return {"keyframes": len(kfs), "sessions": len({k.session for k in kfs}), "true_revisits": len(revisits),
@@ -240,13 +253,12 @@ def score_episode(kfs: list[Keyframe], obj_T: np.ndarray, config: Config, mode: 
                 if not cov.is_active(r):
                     det.remove(r)
         for lp in loops:
-            rot, trans = loop_error(lp, se3.inverse(obj_T[lp.ref_id]) @ obj_T[lp.tar_id], kmap)
-            if rot <= 1.0 and trans <= 0.3:
+            record = wrong_loop(lp, obj_T, kmap)
+            if record is None:
                 correct += 1
                 queries_hit.add(k.id)
             else:
-                wrong.append({"ref": lp.ref_id, "tar": lp.tar_id, "rot_deg": float(rot), "trans_mm": float(trans),
-                              "ccs": lp.ccs, "scr": lp.scr, "inliers": lp.inliers})
+                wrong.append(record)
     accepted = correct + len(wrong)
     return {
         "keyframes": len(kfs), "sessions": len({k.session for k in kfs}),

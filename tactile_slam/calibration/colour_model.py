@@ -19,7 +19,7 @@ from torch import nn
 from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet
 from tactile_slam.calibration.dataset import sphere_targets
 from tactile_slam.calibration.labels import PressLabel
-from tactile_slam.calibration.model import check_chunk_pixels, mlp_rows
+from tactile_slam.calibration.model import check_chunk_pixels, mlp_rows, read_weights
 
 COLOUR_FORMAT_TAG = "tactile-slam-colour-model"
 
@@ -111,12 +111,7 @@ class ColourModel:
     def load(cls, path: str | Path, device: torch.device | str = "cpu") -> "ColourModel":
         """Load a file written by :meth:`save` (weights-only, strict keys)."""
         path = Path(path)
-        if not path.is_file():
-            raise CalibrationDataError(f"colour model not found: {path}")
-        try:
-            obj = torch.load(path, map_location="cpu", weights_only=True)
-        except Exception as exc:  # torch raises several types for corrupt files
-            raise CalibrationDataError(f"cannot read colour model {path}: {exc}") from exc
+        obj = read_weights(path, CalibrationDataError, "colour model")
         if not isinstance(obj, dict) or obj.get("format") != COLOUR_FORMAT_TAG:
             raise CalibrationDataError(f"{path} is not a tactile-slam colour model")
         model = cls(tuple(obj["hidden"]), obj.get("meta", {}))

@@ -55,6 +55,18 @@ class GradientMLP(nn.Module):
         return self.layers[-1](x)
 
 
+def read_weights(path: str | Path, error: type[Exception], what: str) -> Any:
+    """The object in a ``torch.save`` file, read weights-only onto the CPU; ``error``
+    (naming ``what`` and the path) when the file is missing or cannot be read."""
+    path = Path(path)
+    if not path.is_file():
+        raise error(f"{what} not found: {path}")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # torch raises several types for corrupt files
+        raise error(f"cannot read {what} {path}: {exc}") from exc
+
+
 def check_chunk_pixels(value: int) -> int:
     """A ``chunk_pixels`` setting: an integer >= 0 (0: all pixels at once)."""
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
@@ -142,12 +154,7 @@ def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[Gr
         ``(model, meta)``; ``meta`` is empty for SDK files.
     """
     path = Path(path)
-    if not path.is_file():
-        raise CalibrationModelError(f"calibration model not found: {path}")
-    try:
-        obj = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as exc:  # torch raises several types for corrupt files
-        raise CalibrationModelError(f"cannot read calibration model {path}: {exc}") from exc
+    obj = read_weights(path, CalibrationModelError, "calibration model")
     if isinstance(obj, dict) and obj.get("format") == FORMAT_TAG:
         hidden = tuple(obj["hidden"])
         state, meta = obj["state_dict"], dict(obj.get("meta", {}))

@@ -44,3 +44,26 @@ def test_backend_section_scores_gate_and_no_gate(tmp_path):
         assert r["accepted"] >= 1 and 0 < r["query_recall"] <= 1
     gate = res["seed/tracking/gate"]["summary"]["loop_gate"]
     assert gate is not None and res["seed/tracking/no_gate"]["summary"]["loop_gate"] is None
+
+
+def test_wrong_loop_judges_against_the_release_gate():
+    from tactile_slam.backend import BackEnd
+    from tests.loop.revisit import revisit_keyframes
+
+    kfs, kf0_T = revisit_keyframes()
+    be = BackEnd(Config())
+    for k in kfs:
+        be.add(k)
+    (lp,) = be.loops
+    kmap = {k.id: k for k in kfs}
+    assert loops.wrong_loop(lp, kf0_T, kmap) is None
+    # the truth of keyframe 2 turned by 2 deg about the sensor axis: the same loop is now wrong by 2 deg
+    c, s = torch.cos(torch.tensor(2.0).deg2rad()), torch.sin(torch.tensor(2.0).deg2rad())
+    turn = torch.eye(4, dtype=torch.float64)
+    turn[:2, :2] = torch.tensor([[c, -s], [s, c]], dtype=torch.float64)
+    moved = kf0_T.clone()
+    moved[2] = kf0_T[2] @ turn
+    record = loops.wrong_loop(lp, moved, kmap)
+    true_rot, _ = loops.loop_error(lp, se3.inverse(kf0_T[0]) @ kf0_T[2], kmap)
+    assert record["ref"] == 0 and record["tar"] == 2 and abs(record["rot_deg"] - 2.0) <= true_rot + 1e-6
+    assert set(record) == {"ref", "tar", "rot_deg", "trans_mm", "ccs", "scr", "inliers"}
