@@ -435,10 +435,19 @@ class BackEnd:
                                        "refine": med(st.time_refine)},
         }
 
+    def held_loops(self) -> list[dict]:
+        """Every verified loop that is not in the graph, JSON-ready (:meth:`Loop.to_dict`)
+        with its ``reason`` (:meth:`~tactile_slam.loop.consistency.LoopGate.held`); empty
+        without the gate (``loop.consistency: false`` accepts every verified loop)."""
+        held = self.gate.held() if self.gate is not None else []
+        return [loop.to_dict() | {"reason": reason} for loop, reason in held]
+
     def write(self, out_dir: Path) -> None:
-        """``loops.json`` (accepted loops) and ``pose_graph.g2o`` into ``out_dir``."""
+        """``loops.json`` (accepted loops), ``loops_held.json`` (verified loops not in the
+        graph, :meth:`held_loops`) and ``pose_graph.g2o`` into ``out_dir``."""
         out_dir.mkdir(parents=True, exist_ok=True)
         (out_dir / "loops.json").write_text(json.dumps([loop.to_dict() for loop in self.loops], indent=2))
+        (out_dir / "loops_held.json").write_text(json.dumps(self.held_loops(), indent=2))
         if self.graph.num_nodes:
             self.graph.to_g2o(out_dir / "pose_graph.g2o")
 

@@ -68,6 +68,8 @@ def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, to
     }
     if (run_dir / "loops.json").is_file() and (run_dir / "keyframes.json").is_file():
         metrics["loops"] = loop_report(run_dir, ep.object_T_sensor)
+    if (run_dir / "loops_held.json").is_file() and (run_dir / "keyframes.json").is_file():
+        metrics["held_loops"] = held_loop_report(run_dir, ep.object_T_sensor)
     meshes = [name for name in RECON_FILES if (run_dir / name).is_file()] if recon else []
     if meshes:
         from tactile_slam.eval.recon_metrics import recon_report
@@ -82,15 +84,26 @@ def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, to
     return metrics, {"frames": np.arange(ref, ref + len(est)), "errors": errors}
 
 
-def loop_report(run_dir: Path, object_T_sensor: np.ndarray) -> dict:
-    """Precision of the run's accepted loops (``loops.json``) against ground truth: each
-    loop's keyframes map to video frames through ``keyframes.json``."""
-    loops = json.loads((run_dir / "loops.json").read_text())
+def loop_report(run_dir: Path, object_T_sensor: np.ndarray, loops: list[dict] | None = None) -> dict:
+    """Precision of loops against ground truth: the run's accepted loops (``loops.json``),
+    or ``loops`` (records of that form); each loop's keyframes map to video frames through
+    ``keyframes.json``."""
+    if loops is None:
+        loops = json.loads((run_dir / "loops.json").read_text())
     video = {k["id"]: k["video_index"] for k in json.loads((run_dir / "keyframes.json").read_text())}
     pairs = np.array([[video[lp["ref_id"]], video[lp["tar_id"]]] for lp in loops], dtype=np.int64).reshape(-1, 2)
     rel = np.array([lp["ref_T_tar"] for lp in loops], dtype=np.float64).reshape(-1, 4, 4)
     known = np.array([lp.get("depth_known", True) for lp in loops], dtype=bool)
     return loop_precision_recall(pairs, rel, object_T_sensor, depth_known=known)
+
+
+def held_loop_report(run_dir: Path, object_T_sensor: np.ndarray) -> dict[str, dict]:
+    """:func:`loop_report` of the verified loops the back end held out of the graph
+    (``loops_held.json``), per reason (``waiting``, ``repetitive``, ...): whether the loops
+    it waited on or dropped were right."""
+    held = json.loads((run_dir / "loops_held.json").read_text())
+    reasons = sorted({lp["reason"] for lp in held})
+    return {r: loop_report(run_dir, object_T_sensor, [lp for lp in held if lp["reason"] == r]) for r in reasons}
 
 
 def plot_errors(path: Path, frames: np.ndarray, errors: np.ndarray, fps: float, title: str) -> None:
@@ -129,5 +142,10 @@ def run(args) -> int:
                 f"{metrics['object']} {metrics['kind']}: per-axis tracking error")
     mae = metrics["tracking"]["per_axis_mae"]
     print("per-axis MAE: " + ", ".join(f"{k} {mae[k]:.3f}" for k in AXES) + f" over {mae['n_frames']} frames")
+    if "loops" in metrics:
+        print(f"loops: {metrics['loops']['correct']} of {metrics['loops']['reported']} correct")
+    if metrics.get("held_loops"):
+        print("verified loops held out of the graph (correct of held): "
+              + ", ".join(f"{r} {m['correct']} of {m['reported']}" for r, m in metrics["held_loops"].items()))
     print(f"wrote {out / 'metrics.json'} and {out / 'tracking_error.png'}")
     return 0

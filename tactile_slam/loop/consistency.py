@@ -288,6 +288,7 @@ class LoopGate:
         self._limit = model.scaled(doubt_factor).half_turn_path_mm()  # drift paths searched up to this
         self.motion = MotionGraph(model.lever_mm)
         self.pending: list[PendingLoop] = []
+        self.dropped: list[tuple[object, str]] = []  # verified loops let go, with the reason (see held)
         self.stats = GateStats()
 
     def add_node(self, node: int) -> None:
@@ -350,10 +351,22 @@ class LoopGate:
         self.stats.pending = len(self.pending)
         return Selection(accepted, merges)
 
+    def held(self) -> list[tuple[object, str]]:
+        """Every verified loop the gate has not let into the graph, with the reason:
+        ``repetitive`` / ``ambiguous`` (between groups, dropped: ``Loop.repetitive``, or its
+        pair also verified elsewhere), ``inconsistent`` (within a group, beyond
+        ``doubt_factor`` times the drift tolerance: rejected), ``waiting`` (between groups,
+        pending: too little agreeing support yet, or a disagreeing set as strong) and
+        ``doubtful`` (within a group, between the tolerance and ``doubt_factor`` times it:
+        pending). Pending loops carry their state at the gate's last evaluation."""
+        return self.dropped + [(p.loop, "waiting" if len(p.groups) == 2 else "doubtful") for p in self.pending]
+
     def _drop_repetitive(self, loops: list[PendingLoop]) -> list[PendingLoop]:
         """The loops between groups that may wait for corroboration: those on a repeating
         texture are dropped (counted in ``stats.repetitive``)."""
         keep = [p for p in loops if not p.repetitive]
+        self.dropped += [(p.loop, "repetitive" if p.loop.repetitive else "ambiguous")
+                         for p in loops if p.repetitive]
         self.stats.repetitive += len(loops) - len(keep)
         return keep
 
@@ -383,6 +396,7 @@ class LoopGate:
         for p in doubtful:
             p.groups, p.recheck = frozenset(), False  # evaluated with its group below
         self.pending += doubtful
+        self.dropped += [(p.loop, "inconsistent") for p, m in zip(loops, plausible) if not m]
         self.stats.doubtful += len(doubtful)
         self.stats.rejected_consistency += len(loops) - sum(plausible)
         return [p.loop for p, k in zip(loops, ok) if k]

@@ -331,7 +331,7 @@ class OfflinePipeline:
                           f"pose graph: {len(ids)} keyframes, {len(active & set(ids))} coverage, {len(lps)} loops")
 
     def _write_backend(self, backend: BackEnd) -> dict:
-        """``loops.json``, ``pose_graph.g2o``, ``pose_graph.png`` and the back end's statistics."""
+        """``loops.json``, ``loops_held.json``, ``pose_graph.g2o``, ``pose_graph.png`` and the back end's statistics."""
         backend.write(self.out_dir)
         if backend.graph.num_nodes:
             self._plot_graph(backend)

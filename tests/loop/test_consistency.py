@@ -120,10 +120,10 @@ def test_doubtful_loops_within_a_group_need_agreement():
         gate.add_factor(k, k + 1, Z)
     first = loop(20, 26, se3.inverse(true[20]) @ true[26])
     assert gate.select([first], lambda k: 0, lambda k: est[k]).accepted == []
-    assert gate.stats.doubtful == 1 and len(gate.pending) == 1
+    assert gate.stats.doubtful == 1 and len(gate.pending) == 1 and gate.held() == [(first, "doubtful")]
     second = loop(21, 28, se3.inverse(true[21]) @ true[28])
     sel = gate.select([second], lambda k: 0, lambda k: est[k])
-    assert sel.accepted == [first, second] and sel.merges == [] and gate.pending == []
+    assert sel.accepted == [first, second] and sel.merges == [] and gate.pending == [] and gate.held() == []
 
 
 def test_symmetric_false_loop_rejected_true_loop_with_drift_accepted():
@@ -141,7 +141,7 @@ def test_symmetric_false_loop_rejected_true_loop_with_drift_accepted():
     assert float(rot) > 1.0 and float(trans) > MODEL.base_trans_mm
     sel = gate.select([true_loop, false_loop], lambda k: 0, lambda k: est[k])
     assert sel.accepted == [true_loop] and sel.merges == []
-    assert gate.stats.rejected_consistency == 1
+    assert gate.stats.rejected_consistency == 1 and gate.held() == [(false_loop, "inconsistent")]
 
 
 def test_beyond_a_half_turn_of_drift_nothing_is_rejected():
@@ -215,9 +215,20 @@ def test_single_inter_group_loop_is_not_merged(two_sessions):
     sel = gate.select([false_loop], groups.group_of, graph.pose)
     assert sel.accepted == [] and sel.merges == [] and len(gate.pending) == 1
     # a second false loop from the *same* query keyframe is no independent evidence
-    sel = gate.select([loop(5, 16, symmetric_false(true, 5, 16))], groups.group_of,
-                      graph.pose)
+    second = loop(5, 16, symmetric_false(true, 5, 16))
+    sel = gate.select([second], groups.group_of, graph.pose)
     assert sel.merges == [] and groups.group_of(16) != groups.group_of(3)
+    assert gate.held() == [(false_loop, "waiting"), (second, "waiting")]
+
+
+def test_held_loops_between_groups_say_why_they_were_dropped(two_sessions):
+    true, graph, groups, gate = two_sessions
+    rep = replace(loop(12, 17, se3.inverse(true[12]) @ true[17]), repetitive=True)
+    amb = replace(loop(10, 19, se3.inverse(true[10]) @ true[19]), ambiguous=True)
+    both = replace(loop(11, 21, se3.inverse(true[11]) @ true[21]), repetitive=True, ambiguous=True)
+    sel = gate.select([rep, amb, both], groups.group_of, graph.pose)
+    assert sel.accepted == [] and gate.pending == [] and gate.stats.repetitive == 3
+    assert gate.held() == [(rep, "repetitive"), (amb, "ambiguous"), (both, "repetitive")]
 
 
 @pytest.mark.parametrize("distinct, merges", [("queries", True), ("both", False)])
@@ -406,6 +417,9 @@ def test_backend_does_not_merge_sessions_on_one_repetitive_texture_loop(trust):
     assert be.loops == [] and be.stats.merges == 0 and be.group[0] != be.group[1]
     gate = be.summary()["loop_gate"]
     assert len(be.gate.pending) == gate["pending"] == int(trust) and gate["repetitive"] == int(not trust)
+    (held,) = be.held_loops()
+    assert (held["ref_id"], held["tar_id"], held["repetitive"]) == (0, 1, True)
+    assert held["reason"] == ("waiting" if trust else "repetitive")
 
 
 def test_bad_gate_settings_are_refused():

@@ -107,6 +107,15 @@ def test_contact_loss_sessions_merge_with_loops(contact_loss_episode, tmp_path):
     assert max(mae["rx_deg"], mae["ry_deg"], mae["rz_deg"]) < 1.0, mae
     loops = json.loads((tmp_path / "full" / "loops.json").read_text())
     assert len(loops) == full.stats["loops"]
+    # every verified loop left out of the graph, with the gate's reason, as its counters say
+    held = json.loads((tmp_path / "full" / "loops_held.json").read_text())
+    reasons = [lp["reason"] for lp in held]
+    gate = full.stats["loop_gate"]
+    assert set(reasons) <= {"repetitive", "ambiguous", "inconsistent", "waiting", "doubtful"}
+    assert reasons.count("waiting") + reasons.count("doubtful") == gate["pending"]
+    assert reasons.count("repetitive") + reasons.count("ambiguous") == gate["repetitive"]
+    assert reasons.count("inconsistent") == gate["rejected_consistency"]
+    assert not {(lp["ref_id"], lp["tar_id"]) for lp in held} & {(lp["ref_id"], lp["tar_id"]) for lp in loops}
     # the paper's statistics: every loop was a candidate, coverage keyframes are keyframes
     assert full.stats["loop_candidates"] >= full.stats["loops"]
     assert 1 <= full.stats["coverage_keyframes"] <= full.stats["keyframes"]
@@ -252,13 +261,33 @@ def test_no_mesh_computes_no_reconstruction_and_gradients_need_no_model(tracking
     assert "reconstruction" not in res.stats
 
 
-def test_eval_scores_accepted_loops(contact_loss_episode, tmp_path):
-    """`tactile-slam eval` reports the precision of the run's loops against ground truth."""
+def test_eval_scores_accepted_loops(contact_loss_episode, tmp_path, capsys):
+    """`tactile-slam eval` reports the precision of the run's loops against ground truth,
+    and of the verified loops the back end held out of the graph, per reason."""
     run(contact_loss_episode, tmp_path, "gelslam")
     assert main(["eval", str(tmp_path), "--gt", str(contact_loss_episode), "--no-recon"]) == 0
-    loops = json.loads((tmp_path / "metrics.json").read_text())["loops"]
+    metrics = json.loads((tmp_path / "metrics.json").read_text())
+    loops = metrics["loops"]
     assert loops["reported"] >= 1 and loops["precision"] == 1.0
     assert loops["trans_err_mm"] < 0.3 and loops["rot_err_deg"] < 1.0
+    assert f"loops: {loops['correct']} of {loops['reported']} correct" in capsys.readouterr().out
+    held = json.loads((tmp_path / "loops_held.json").read_text())
+    by_reason = metrics["held_loops"]
+    assert sum(m["reported"] for m in by_reason.values()) == len(held)
+    assert {r: m["reported"] for r, m in by_reason.items()} == {r: [lp["reason"] for lp in held].count(r)
+                                                                 for r in {lp["reason"] for lp in held}}
+    # independently: each held loop against the true relative pose of its keyframes' video frames
+    assert held, "the episode's short sessions leave loops waiting for a second one"
+    video = {k["id"]: k["video_index"] for k in json.loads((tmp_path / "keyframes.json").read_text())}
+    gt = read_episode(contact_loss_episode).object_T_sensor
+    for reason, m in by_reason.items():
+        correct = 0
+        for lp in (lp for lp in held if lp["reason"] == reason):
+            err = np.linalg.inv(np.linalg.inv(gt[video[lp["ref_id"]]]) @ gt[video[lp["tar_id"]]]) @ np.array(
+                lp["ref_T_tar"])
+            angle = np.degrees(np.arccos(np.clip((np.trace(err[:3, :3]) - 1) / 2, -1, 1)))
+            correct += bool(angle <= 1.0 and np.linalg.norm(err[:3, 3]) * 1e3 <= 0.3)
+        assert m["correct"] == correct, reason
 
 
 def test_all_groups_meshes_each_group_in_its_own_frame(contact_loss_episode, tmp_path):
