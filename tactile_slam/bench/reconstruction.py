@@ -23,7 +23,9 @@ closure could form, and the ``revisit_funnel``
 (:func:`tactile_slam.eval.loop_funnel.revisit_funnel`): how many of the pairs that
 truly share surface across sessions reach each stage of loop detection, and the
 ``loop_precision`` of the run's accepted loops against ground truth
-(:func:`tactile_slam.cli.eval.loop_report`: a loop is correct within 1 deg and 0.3 mm).
+(:func:`tactile_slam.cli.eval.loop_report`: a loop is correct within 1 deg and 0.3 mm),
+and ``held_loops``: the same per reason for the verified loops the back end kept out of
+the graph (:func:`tactile_slam.cli.eval.held_loop_report`).
 
 Each Poisson mesh is scored with :func:`tactile_slam.eval.recon_metrics.recon_report`
 at the ground-truth placement of its start frame and after ICP; the fused grid mesh
@@ -46,7 +48,7 @@ import torch
 
 from tactile_slam.bench.common import rendered_frames, write_json
 from tactile_slam.config import Config, load_config
-from tactile_slam.cli.eval import loop_report
+from tactile_slam.cli.eval import held_loop_report, loop_report
 from tactile_slam.eval.loop_funnel import revisit_funnel
 from tactile_slam.eval.loop_metrics import joinable_groups
 from tactile_slam.eval.recon_metrics import recon_report, surface_metrics, touch_poses
@@ -180,12 +182,14 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
                "joinable_groups": len(set(joinable.values())),
                "joinable_largest": Counter(joinable.values()).most_common(1)[0][1],
                "revisit_funnel": funnel,
-               "loop_precision": loop_report(run_dir, episode.object_T_sensor)}
+               "loop_precision": loop_report(run_dir, episode.object_T_sensor),
+               "held_loops": held_loop_report(run_dir, episode.object_T_sensor)}
     print(f"{name:6s} {size_label:5s} {system['sessions']} sessions -> {system['groups']} groups, largest "
           f"{system['largest_group']} of {len(keyframes)} keyframes; an ideal loop closure: "
           f"{system['joinable_groups']} groups, largest {system['joinable_largest']}; revisits between sessions "
           + " -> ".join(f"{k} {v}" for k, v in funnel.items())
-          + f"; loops {system['loop_precision']['correct']} of {system['loop_precision']['reported']} correct",
+          + f"; loops {system['loop_precision']['correct']} of {system['loop_precision']['reported']} correct"
+          + "".join(f", held {r} {m['correct']} of {m['reported']}" for r, m in system["held_loops"].items()),
           flush=True)
     for variant in args.variants:
         kfs, poses, object_T_start = variant_input(variant, keyframes, est, groups, episode.object_T_sensor, joinable)

@@ -87,6 +87,9 @@ def test_tiny_run_scores_ground_truth_and_estimated_meshes(tmp_path):
     loops = json.loads((tmp_path / "work" / "dice_small" / "run" / "loops.json").read_text())
     precision = system["loop_precision"]  # every accepted loop scored against the truth
     assert precision["reported"] == len(loops) and 0 <= precision["correct"] <= len(loops)
+    held = json.loads((tmp_path / "work" / "dice_small" / "run" / "loops_held.json").read_text())
+    assert sum(m["reported"] for m in system["held_loops"].values()) == len(held)
+    assert all(0 <= m["correct"] <= m["reported"] for m in system["held_loops"].values())
     for r in runs:
         for m in (r["mesh"]["gt_pose"], r["mesh"]["icp"], r["fused"]["gt_pose"]):
             assert all(math.isfinite(m[k]) for k in ("chamfer_mm", "recon_to_gt_mm", "gt_to_recon_mm"))
