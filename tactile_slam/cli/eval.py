@@ -84,26 +84,51 @@ def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, to
     return metrics, {"frames": np.arange(ref, ref + len(est)), "errors": errors}
 
 
-def loop_report(run_dir: Path, object_T_sensor: np.ndarray, loops: list[dict] | None = None) -> dict:
-    """Precision of loops against ground truth: the run's accepted loops (``loops.json``),
-    or ``loops`` (records of that form); each loop's keyframes map to video frames through
-    ``keyframes.json``."""
-    if loops is None:
-        loops = json.loads((run_dir / "loops.json").read_text())
-    video = {k["id"]: k["video_index"] for k in json.loads((run_dir / "keyframes.json").read_text())}
+def _read_loops(path: Path, held: bool = False) -> list[dict]:
+    """The loop records of ``loops.json`` (or, ``held``, ``loops_held.json``, each with a
+    ``reason``); :class:`TrajectoryError` naming the file when they are malformed."""
+    try:
+        loops = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise TrajectoryError(f"cannot read {path}: {exc}") from exc
+    keys = {"ref_id", "tar_id", "ref_T_tar"} | ({"reason"} if held else set())
+    if not isinstance(loops, list) or not all(isinstance(lp, dict) and keys <= lp.keys() for lp in loops):
+        raise TrajectoryError(f"{path} is not a list of loop records with {sorted(keys)}")
+    return loops
+
+
+def _precision(loops: list[dict], video: dict[int, int], object_T_sensor: np.ndarray, source: Path) -> dict:
+    """:func:`loop_precision_recall` of loop records whose keyframe ids map to video frames
+    through ``video``."""
+    unknown = sorted({i for lp in loops for i in (lp["ref_id"], lp["tar_id"])} - video.keys())
+    if unknown:
+        raise TrajectoryError(f"{source}: loops through keyframes {unknown[:5]} that keyframes.json does not list")
     pairs = np.array([[video[lp["ref_id"]], video[lp["tar_id"]]] for lp in loops], dtype=np.int64).reshape(-1, 2)
     rel = np.array([lp["ref_T_tar"] for lp in loops], dtype=np.float64).reshape(-1, 4, 4)
     known = np.array([lp.get("depth_known", True) for lp in loops], dtype=bool)
     return loop_precision_recall(pairs, rel, object_T_sensor, depth_known=known)
 
 
+def _video_of(run_dir: Path) -> dict[int, int]:
+    """Keyframe id -> video index, from the run's ``keyframes.json``."""
+    return {k["id"]: k["video_index"] for k in json.loads((run_dir / "keyframes.json").read_text())}
+
+
+def loop_report(run_dir: Path, object_T_sensor: np.ndarray) -> dict:
+    """Precision of the run's accepted loops (``loops.json``) against ground truth: each
+    loop's keyframes map to video frames through ``keyframes.json``."""
+    path = run_dir / "loops.json"
+    return _precision(_read_loops(path), _video_of(run_dir), object_T_sensor, path)
+
+
 def held_loop_report(run_dir: Path, object_T_sensor: np.ndarray) -> dict[str, dict]:
     """:func:`loop_report` of the verified loops the back end held out of the graph
     (``loops_held.json``), per reason (``waiting``, ``repetitive``, ...): whether the loops
     it waited on or dropped were right."""
-    held = json.loads((run_dir / "loops_held.json").read_text())
-    reasons = sorted({lp["reason"] for lp in held})
-    return {r: loop_report(run_dir, object_T_sensor, [lp for lp in held if lp["reason"] == r]) for r in reasons}
+    path = run_dir / "loops_held.json"
+    held, video = _read_loops(path, held=True), _video_of(run_dir)
+    return {r: _precision([lp for lp in held if lp["reason"] == r], video, object_T_sensor, path)
+            for r in sorted({lp["reason"] for lp in held})}
 
 
 def plot_errors(path: Path, frames: np.ndarray, errors: np.ndarray, fps: float, title: str) -> None:

@@ -3,8 +3,9 @@ import json
 import numpy as np
 import pytest
 
+from tactile_slam.cli.eval import held_loop_report
 from tactile_slam.cli.main import main
-from tactile_slam.eval.trajectory import relative_to
+from tactile_slam.eval.trajectory import TrajectoryError, relative_to
 from tactile_slam.sim.episode import SimulationSettings, simulate_episode
 
 
@@ -56,3 +57,43 @@ def test_eval_cli_scores_reconstruction_in_reference_frame(episode, tmp_path):
     assert rec["mesh.ply"]["gt_pose"]["chamfer_mm"] < 1e-3
     assert rec["mesh.ply"]["gt_pose"]["ncd"] == pytest.approx(1.0, abs=1e-5)
     assert rec["mesh.ply"]["icp"]["chamfer_mm"] < 1e-3
+
+
+def _held_run(tmp_path, held) -> tuple:
+    """A run folder with two keyframes (video frames 3 and 7) and ``loops_held.json``."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "keyframes.json").write_text(json.dumps([{"id": 0, "video_index": 3}, {"id": 1, "video_index": 7}]))
+    (run / "loops_held.json").write_text(held if isinstance(held, str) else json.dumps(held))
+    gt = np.repeat(np.eye(4)[None], 10, axis=0)
+    gt[7, 0, 3] = 0.001  # keyframe 1 is 1 mm along x of keyframe 0
+    return run, gt
+
+
+def test_held_loop_report_scores_each_reason(tmp_path):
+    right, off = np.eye(4), np.eye(4)
+    right[0, 3], off[0, 3] = 0.001, 0.0015  # the truth, and 0.5 mm off
+    held = [{"ref_id": 0, "tar_id": 1, "ref_T_tar": right.tolist(), "reason": "waiting"},
+            {"ref_id": 0, "tar_id": 1, "ref_T_tar": off.tolist(), "reason": "waiting"},
+            {"ref_id": 0, "tar_id": 1, "ref_T_tar": off.tolist(), "reason": "repetitive"}]
+    run, gt = _held_run(tmp_path, held)
+    report = held_loop_report(run, gt)
+    assert {r: (m["correct"], m["reported"]) for r, m in report.items()} == {"repetitive": (0, 1), "waiting": (1, 2)}
+    assert report["repetitive"]["trans_err_mm"] == pytest.approx(0.5)
+
+
+@pytest.mark.parametrize("held, match", [
+    ("{not json", "cannot read"),
+    ({"ref_id": 0}, "not a list of loop records"),
+    ([{"ref_id": 0, "tar_id": 1, "ref_T_tar": np.eye(4).tolist()}], "reason"),  # no reason
+    ([{"ref_id": 0, "tar_id": 9, "ref_T_tar": np.eye(4).tolist(), "reason": "waiting"}], r"keyframes \[9\]"),
+])
+def test_held_loop_report_refuses_malformed_files(tmp_path, held, match):
+    run, gt = _held_run(tmp_path, held)
+    with pytest.raises(TrajectoryError, match=match):
+        held_loop_report(run, gt)
+
+
+def test_held_loop_report_of_no_held_loops_is_empty(tmp_path):
+    run, gt = _held_run(tmp_path, [])
+    assert held_loop_report(run, gt) == {}
