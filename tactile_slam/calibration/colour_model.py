@@ -18,7 +18,7 @@ from torch import nn
 
 from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet
 from tactile_slam.calibration.dataset import sphere_targets
-from tactile_slam.calibration.labels import PressLabel
+from tactile_slam.calibration.labels import PressLabel, rim_margin_px
 from tactile_slam.calibration.model import check_chunk_pixels, mlp_rows, read_weights
 
 COLOUR_FORMAT_TAG = "tactile-slam-colour-model"
@@ -132,10 +132,12 @@ class ColourSamples:
 
 def colour_samples(
     calib: CalibrationSet, labels: dict[str, PressLabel], reldirs: list[str], mm_per_px: float,
-    margin_px: float = 4.0,
+    margin_px: float | None = None,
 ) -> ColourSamples:
     """Samples inside the reliable labelled discs of ``reldirs``: analytic angles and
-    position -> measured colour change against the background."""
+    position -> measured colour change against the background (``margin_px`` ``None``:
+    :func:`~tactile_slam.calibration.labels.rim_margin_px` at ``mm_per_px``)."""
+    margin_px = rim_margin_px(mm_per_px) if margin_px is None else margin_px
     feats, cols = [], []
     bg = torch.from_numpy(calib.background)
     for reldir in reldirs:

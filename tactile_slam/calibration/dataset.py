@@ -1,6 +1,7 @@
 """Training samples from labelled presses: analytic sphere targets and background samples.
 
-method.md section 2.2-2.3: inside each labelled disc shrunk by ``margin_px`` the target
+method.md section 2.2-2.3: inside each labelled disc shrunk by a margin (default
+:func:`~tactile_slam.calibration.labels.rim_margin_px`: 4 px on the Mini) the target
 angles are those of a sphere of the catalogued diameter, ``theta_x = atan2(dx, dz)``,
 ``theta_y = atan2(dy, dz)`` with ``dz = sqrt(R^2 - dx^2 - dy^2)``; a press whose label is
 wider than the ball (``R < radius - margin``) is "too deep" and skipped. Background
@@ -19,7 +20,7 @@ from dataclasses import dataclass, field
 import torch
 
 from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet, Press
-from tactile_slam.calibration.labels import PressLabel
+from tactile_slam.calibration.labels import RIM_MARGIN_PX, PressLabel, rim_margin_px
 from tactile_slam.calibration.model import pixel_features
 
 
@@ -52,7 +53,8 @@ class CalibrationData:
 
 
 def sphere_targets(
-    shape: tuple[int, int], cx: float, cy: float, radius: float, ball_radius_px: float, margin_px: float = 4.0
+    shape: tuple[int, int], cx: float, cy: float, radius: float, ball_radius_px: float,
+    margin_px: float = RIM_MARGIN_PX,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Analytic gradient angles of a ball press.
 
@@ -97,15 +99,17 @@ def split_presses(reldirs: list[str], seed: int, test_fraction: float = 0.2) -> 
 
 def labelled_targets(
     calib: CalibrationSet, labels: dict[str, PressLabel], reldirs: list[str], mm_per_px: float,
-    margin_px: float, skipped: dict[str, str],
+    margin_px: float | None, skipped: dict[str, str],
 ) -> Iterator[tuple[str, Press, torch.Tensor, torch.Tensor]]:
     """``(reldir, press, angles (H, W, 2), mask (H, W))`` for each usable press of
     ``reldirs``; presses left out (unreliable label, too deep, disc off the image) are
-    recorded in ``skipped`` with the reason.
+    recorded in ``skipped`` with the reason. ``margin_px`` ``None``: the rim margin at
+    ``mm_per_px`` (:func:`~tactile_slam.calibration.labels.rim_margin_px`).
 
     Raises:
         CalibrationDataError: a press has no label.
     """
+    margin_px = rim_margin_px(mm_per_px) if margin_px is None else margin_px
     for reldir in reldirs:
         if reldir not in labels:
             raise CalibrationDataError(f"press {reldir} has no label")
@@ -126,7 +130,8 @@ def labelled_targets(
 
 
 def press_samples(
-    calib: CalibrationSet, labels: dict[str, PressLabel], reldirs: list[str], mm_per_px: float, margin_px: float = 4.0
+    calib: CalibrationSet, labels: dict[str, PressLabel], reldirs: list[str], mm_per_px: float,
+    margin_px: float | None = None,
 ) -> tuple[Samples, dict[str, str]]:
     """Contact samples of the reliable, not-too-deep presses among ``reldirs``.
 
@@ -156,7 +161,7 @@ def build_dataset(
     mm_per_px: float,
     seed: int = 0,
     test_fraction: float = 0.2,
-    margin_px: float = 4.0,
+    margin_px: float | None = None,
     background_ratio: float = 0.2,
 ) -> CalibrationData:
     """Split the presses by image (seeded), build contact samples per split and add

@@ -117,7 +117,7 @@ def evaluate_model(
     labels: dict[str, PressLabel],
     reldirs: list[str],
     mm_per_px: float,
-    margin_px: float = 4.0,
+    margin_px: float | None = None,
 ) -> ModelEvaluation:
     """Score ``model`` on the presses ``reldirs`` of ``calib`` (unreliable or too-deep
     labels are skipped and reported).

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import csv
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import NamedTuple
 
@@ -41,6 +41,29 @@ import numpy as np
 from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSet
 
 LABEL_COLUMNS = ("experiment_reldir", "cx", "cy", "radius")
+
+PIXEL_SCALE_MM = 0.0634
+"""Scale (mm per pixel, the GelSight Mini's at 320x240) at which the calibration's pixel
+settings are given: the detector's and the rim margin. A press set at another scale
+has them converted to its own pixels (:meth:`DetectionConfig.at_scale`,
+:func:`rim_margin_px`), so the same physical tolerances apply, e.g. to presses
+recorded at 640x480."""
+
+RIM_MARGIN_PX = 4.0
+"""Pixels (at :data:`PIXEL_SCALE_MM`) inside a label's rim left out of training and
+evaluation: the rim's position is uncertain and the gel bends most there."""
+
+
+def to_scale(px: float, mm_per_px: float) -> float:
+    """A length of ``px`` pixels at :data:`PIXEL_SCALE_MM`, in pixels at ``mm_per_px``."""
+    if not (math.isfinite(mm_per_px) and mm_per_px > 0):
+        raise ValueError(f"mm_per_px must be finite and > 0, got {mm_per_px}")
+    return px if mm_per_px == PIXEL_SCALE_MM else px * PIXEL_SCALE_MM / mm_per_px
+
+
+def rim_margin_px(mm_per_px: float) -> float:
+    """:data:`RIM_MARGIN_PX` in pixels of an image at ``mm_per_px`` (4 px on the Mini)."""
+    return to_scale(RIM_MARGIN_PX, mm_per_px)
 
 
 class NoContactError(CalibrationDataError):
@@ -70,7 +93,10 @@ class PressLabel:
 
 @dataclass(frozen=True)
 class DetectionConfig:
-    """Detector settings; all but the geometry are dimensionless or relative.
+    """Detector settings; all but the geometry are dimensionless or relative. Lengths
+    (``blur_sigma``, ``settle_px``, ``max_residual_px``, ``min_radius_px``) are pixels
+    at :data:`PIXEL_SCALE_MM`; :meth:`at_scale` converts them for another image scale
+    (:func:`label_presses` does so).
 
     ``noise_sigmas``: changed-pixel threshold in robust noise standard deviations.
     ``n_rays``: rays cast from the centre. ``iterations``: most ray-and-fit rounds per
@@ -98,6 +124,12 @@ class DetectionConfig:
                 raise ValueError(f"DetectionConfig.{name} must be >= {least}, got {getattr(self, name)}")
         if not self.settle_px > 0:
             raise ValueError(f"DetectionConfig.settle_px must be > 0, got {self.settle_px}")
+
+    def at_scale(self, mm_per_px: float) -> "DetectionConfig":
+        """These settings for images at ``mm_per_px``: lengths converted from pixels at
+        :data:`PIXEL_SCALE_MM` (the same settings at that scale)."""
+        return replace(self, **{name: to_scale(getattr(self, name), mm_per_px)
+                                for name in ("blur_sigma", "settle_px", "max_residual_px", "min_radius_px")})
 
 
 def _fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
@@ -321,7 +353,8 @@ def label_presses(
     overrides: dict[str, PressLabel] | None = None,
     cfg: DetectionConfig = DetectionConfig(),
 ) -> list[PressLabel]:
-    """Label every press of ``calib`` in catalog order.
+    """Label every press of ``calib`` in catalog order, with ``cfg`` converted to the
+    set's scale (:meth:`DetectionConfig.at_scale`).
 
     Presses listed in ``overrides`` (e.g. from :func:`read_labels`) take that label and
     are not detected; the others are detected with :func:`detect_contact_circle`.
@@ -334,6 +367,7 @@ def label_presses(
     unknown = sorted(set(overrides) - {p.reldir for p in calib.presses})
     if unknown:
         raise CalibrationDataError(f"labels name presses not in the catalog: {unknown[:5]}")
+    cfg = cfg.at_scale(mm_per_px)
     out = []
     for press in calib.presses:
         if press.reldir in overrides:
@@ -348,7 +382,7 @@ def label_presses(
     return out
 
 
-def draw_label(image: np.ndarray, label: PressLabel, margin_px: float = 4.0) -> np.ndarray:
+def draw_label(image: np.ndarray, label: PressLabel, margin_px: float = RIM_MARGIN_PX) -> np.ndarray:
     """Copy of a ``(H, W, 3)`` uint8 image with the circle (green: reliable, red: flagged),
     the trained disc (radius - margin, thin) and the centre drawn in."""
     out = image.copy()
@@ -363,7 +397,7 @@ def draw_label(image: np.ndarray, label: PressLabel, margin_px: float = 4.0) -> 
 
 
 def write_overlays(calib: CalibrationSet, labels: list[PressLabel], out_dir: str | Path,
-                   columns: int = 6, margin_px: float = 4.0) -> Path:
+                   columns: int = 6, margin_px: float = RIM_MARGIN_PX) -> Path:
     """Write ``out_dir/<reldir with '/' as '_'>.png`` per press and ``out_dir/overview.png``,
     a grid of half-size tiles captioned with the press name and radius; returns the overview path."""
     out_dir = Path(out_dir)

@@ -15,7 +15,9 @@ from tactile_slam.calibration.catalog import CalibrationSet, load_calibration_se
 from tactile_slam.calibration.colour_model import colour_samples, fit_colour_model
 from tactile_slam.calibration.dataset import build_dataset
 from tactile_slam.calibration.evaluate import evaluate_model, format_comparison, format_slope_gain
-from tactile_slam.calibration.labels import PressLabel, label_presses, read_labels, write_labels, write_overlays
+from tactile_slam.calibration.labels import (
+    PressLabel, label_presses, read_labels, rim_margin_px, write_labels, write_overlays,
+)
 from tactile_slam.calibration.model import load_model, save_model
 from tactile_slam.calibration.train import TrainConfig, train_model, write_training_report
 from tactile_slam.config import SensorConfig
@@ -33,7 +35,7 @@ def run_labelling(calib_dir: str | Path, out_dir: str | Path, sensor: SensorConf
     calib = load_calibration_set(calib_dir, sensor.shape)
     labels = labels_for(calib, sensor, labels_file)
     path = write_labels(Path(out_dir) / "labels.csv", labels)
-    write_overlays(calib, labels, Path(out_dir) / "overlays")
+    write_overlays(calib, labels, Path(out_dir) / "overlays", margin_px=rim_margin_px(sensor.mm_per_px))
     return labels, path
 
 
@@ -58,7 +60,7 @@ def run_training(
     calib = load_calibration_set(calib_dir, sensor.shape)
     labels = labels_for(calib, sensor, labels_file)
     write_labels(out / "labels.csv", labels)
-    write_overlays(calib, labels, out / "overlays")
+    write_overlays(calib, labels, out / "overlays", margin_px=rim_margin_px(sensor.mm_per_px))
     by_dir = {lb.reldir: lb for lb in labels}
     flagged = [lb.reldir for lb in labels if not lb.reliable]
     say(f"{len(labels)} presses labelled, {len(flagged)} flagged: {flagged}")

@@ -1,11 +1,13 @@
 import math
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
 from tactile_slam.calibration.catalog import CalibrationDataError, load_calibration_set
 from tactile_slam.calibration.labels import (
+    PIXEL_SCALE_MM,
     DetectionConfig,
     NoContactError,
     PressLabel,
@@ -13,6 +15,7 @@ from tactile_slam.calibration.labels import (
     indentation_px,
     label_presses,
     read_labels,
+    rim_margin_px,
     write_labels,
     write_overlays,
 )
@@ -199,6 +202,56 @@ class TestRealPresses:
         with torch.no_grad():
             ev = evaluate_model(reference_model, mini_calib, mini_labels, [lb.reldir], MM_PER_PX)
         assert ev.angle_mae < 0.05
+
+
+class TestScale:
+    """Pixel settings are given at the Mini's 0.0634 mm/px and converted for other scales,
+    so a press set recorded at another resolution gets the same physical tolerances."""
+
+    def test_at_scale_converts_lengths_only(self):
+        cfg = DetectionConfig()
+        assert cfg.at_scale(PIXEL_SCALE_MM) == cfg
+        half = cfg.at_scale(PIXEL_SCALE_MM / 2)  # twice the pixels per mm
+        for name in ("blur_sigma", "settle_px", "max_residual_px", "min_radius_px"):
+            assert getattr(half, name) == pytest.approx(2 * getattr(cfg, name))
+        for name in ("noise_sigmas", "n_rays", "iterations", "starts", "min_visible"):
+            assert getattr(half, name) == getattr(cfg, name)
+        assert rim_margin_px(PIXEL_SCALE_MM) == 4.0 and rim_margin_px(PIXEL_SCALE_MM * 2) == pytest.approx(2.0)
+
+    @pytest.mark.parametrize("mm_per_px", [0.0, -0.05, float("nan"), float("inf")])
+    def test_bad_scale(self, mm_per_px):
+        with pytest.raises(ValueError, match="mm_per_px"):
+            DetectionConfig().at_scale(mm_per_px)
+
+    @pytest.mark.parametrize("factor", [2.0, 0.5])
+    def test_real_presses_resampled(self, mini_calib, mini_labels, factor):
+        """The real presses resized to 640x480 (or 160x120) at the matching scale: every
+        press labelled reliable at 320x240 is reliable there too, at the same circle (in
+        320x240 pixels: centre and radius within 1.5 px, or one pixel of the smaller image,
+        median within 0.6 px). With the
+        Mini's pixel settings unconverted, five of the 640x480 rims failed the residual
+        test and two of the 160x120 rims the visibility test."""
+        h, w = mini_calib.shape
+        size = (round(w * factor), round(h * factor))
+        interp = cv2.INTER_CUBIC if factor > 1 else cv2.INTER_AREA
+        scale = MM_PER_PX / factor
+        bg = cv2.resize(mini_calib.background, size, interpolation=interp)
+        cfg = DetectionConfig().at_scale(scale)
+        centre, radius = [], []
+        for ref in mini_labels.values():
+            if not ref.reliable:
+                continue
+            press = mini_calib.press(ref.reldir)
+            img = cv2.resize(mini_calib.image(press), size, interpolation=interp)
+            lb = detect_contact_circle(img, bg, press.ball_radius_px(scale), 2.0 / scale, cfg, ref.reldir)
+            assert lb.reliable, (ref.reldir, lb.reason)
+            # pixel centres: x_320 = (x + 0.5) / factor - 0.5
+            cx, cy = (lb.cx + 0.5) / factor - 0.5, (lb.cy + 0.5) / factor - 0.5
+            centre.append(math.hypot(cx - ref.cx, cy - ref.cy))
+            radius.append(abs(lb.radius / factor - ref.radius))
+        bound = max(1.5, 1.0 / factor)
+        assert max(centre) < bound and max(radius) < bound, (max(centre), max(radius))
+        assert np.median(centre) < 0.6 and np.median(radius) < 0.6
 
 
 class TestLabelFiles:
