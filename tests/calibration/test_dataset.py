@@ -93,6 +93,16 @@ class TestBuildDataset:
         assert samples.reldirs == ["6.310mm/2"]
         assert "hand-flagged" in skipped["6.310mm/0"] and "too deep" in skipped["6.310mm/1"]
 
+    @pytest.mark.parametrize("factor", [1.0, 2.0])
+    def test_rim_margin_follows_the_scale(self, synthetic_calib, factor):
+        """The default margin is 4 px at 0.0634 mm/px, i.e. 0.2536 mm: twice the pixels at
+        half the mm per pixel (the same labelled disc then keeps radius - 8 px)."""
+        calib = load_calibration_set(synthetic_calib)
+        label = PressLabel("6.310mm/2", 160.2, 120.7, 30.0)
+        samples, skipped = press_samples(calib, {"6.310mm/2": label}, ["6.310mm/2"], MM_PER_PX / factor)
+        assert not skipped
+        assert len(samples) == pytest.approx(math.pi * (30.0 - 4.0 * factor) ** 2, rel=0.02)
+
     def test_missing_label(self, synthetic_calib):
         calib = load_calibration_set(synthetic_calib)
         with pytest.raises(CalibrationDataError, match="has no label"):
