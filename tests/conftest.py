@@ -1,4 +1,5 @@
-"""Shared fixtures: devices and dtypes to parametrise over, the shared data folder."""
+"""Shared fixtures: devices and dtypes to parametrise over, the shared data folder, and
+torch's thread count restored after every test."""
 
 from __future__ import annotations
 
@@ -30,3 +31,13 @@ def mini_data() -> Path:
     if not GELSIGHT_MINI.is_dir():
         pytest.skip("../shared/data/gelsight_mini is not present")
     return GELSIGHT_MINI
+
+
+@pytest.fixture(autouse=True)
+def restore_torch_threads():
+    """Benchmarks and CLIs set torch's thread count for the process (``--threads``); put it
+    back after each test, so that no test runs under the count an earlier one left
+    (results that depend on summation order would then depend on the test order)."""
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)

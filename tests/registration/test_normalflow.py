@@ -214,7 +214,7 @@ WINDOW_CONFIGS = {"default": NormalFlowConfig(), "coarse": NormalFlowConfig(coar
 def test_targets_in_windows_register_as_full_frames(scene, name):
     """Targets read from windows around their crops (``window_batch``) give the full
     frames' results up to the rounding of grid coordinates in float32: the same accepted
-    pairs and iterations, poses within 1e-3 deg and 1e-4 mm. With the fallback, a pair
+    pairs and iterations, converged poses within 1e-3 deg and 1e-4 mm. With the fallback, a pair
     1.5 mm off (coarse levels) and one started off the contact (the shift search, which
     reads the expanded targets) are recovered in both."""
     ref, tars, truth, init = scene
@@ -228,9 +228,17 @@ def test_targets_in_windows_register_as_full_frames(scene, name):
     assert windows.maps.shape[0] * windows.maps.shape[1] < 0.8 * 240 * 320  # less than the image
     prep = prepare_reference(ref, config)
     full, win = register_prepared(prep, full_batch(crops), init, config), register_prepared(prep, windows, init, config)
-    _close(win, full, rot_deg=1e-3, trans_mm=1e-4)
+    # a pair that never converged (a wrong basin, stopped by the stall check) carries the
+    # rounding through its iterations: its pose agrees to 0.1 deg / 0.01 mm and its CCS to
+    # 1e-3 (0.026 deg and 3e-5 seen on one thread), every converged pair's to 1e-3 deg /
+    # 1e-4 mm and 1e-6
+    conv = full.converged
+    assert torch.equal(win.converged, conv)
+    _close(win[conv], full[conv], rot_deg=1e-3, trans_mm=1e-4)
+    _close(win[~conv], full[~conv], rot_deg=0.1, trans_mm=1e-2)
     assert torch.equal(win.iterations, full.iterations)
-    torch.testing.assert_close(win.ccs, full.ccs, rtol=0, atol=1e-6, equal_nan=True)
+    torch.testing.assert_close(win.ccs[conv], full.ccs[conv], rtol=0, atol=1e-6, equal_nan=True)
+    torch.testing.assert_close(win.ccs[~conv], full.ccs[~conv], rtol=0, atol=1e-3, equal_nan=True)
     assert full.ok[-2:].tolist() == [name == "fallback"] * 2
     ok = full.ok.clone()
     rot, trans = pose_error(win.tar_T_ref[ok], truth[ok])
