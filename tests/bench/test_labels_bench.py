@@ -18,7 +18,7 @@ def _args(tmp_path, data, *extra: str) -> argparse.Namespace:
 
 
 def test_two_relit_sets_on_the_real_presses(tmp_path, mini_data):
-    out = labels.run(_args(tmp_path, mini_data, "--sets", "2"))
+    out = labels.run(_args(tmp_path, mini_data, "--sets", "2", "--scales", "2"))
     res = json.loads(out.read_text())["results"]
     assert res["presses"] == 59 and res["reliable"] >= 55
     relit = res["relit"]
@@ -30,6 +30,13 @@ def test_two_relit_sets_on_the_real_presses(tmp_path, mini_data):
     # the SDK model (hand labels) agrees with the analytic ball inside our discs
     assert res["sdk_agreement"]["angle_mae_rad_pixel_weighted"] < 0.045
     assert res["label_time_per_press"]["n"] == 59
+    # at 640x480 with the pixel settings converted, every reliable press keeps its circle
+    (factor, both), = res["resampled"].items()
+    conv = both["converted"]
+    assert factor == "2" and conv["image"] == [640, 480] and conv["mm_per_px"] == pytest.approx(0.0317)
+    assert conv["reliable"] == res["reliable"] and not conv["flagged"]
+    assert conv["centre_offset_px"]["max"] < 1.5 and conv["radius_difference_abs_px"]["max"] < 1.5
+    assert both["unconverted"]["reliable"] + len(both["unconverted"]["flagged"]) == res["reliable"]
 
 
 def test_relight_and_offset():
@@ -46,8 +53,9 @@ def test_relight_and_offset():
     assert labels.label_offset(PressLabel("p", 12.0, 20.0, 30.0), ref, 320, False) == pytest.approx(5.0)
 
 
-@pytest.mark.parametrize("bad", [["--sets", "0"], ["--gain", "1.0"], ["--offset", "-1"], ["--noise", "2,1"]])
+@pytest.mark.parametrize("bad", [["--sets", "0"], ["--gain", "1.0"], ["--offset", "-1"], ["--noise", "2,1"],
+                                 ["--scales", "2,0"], ["--scales", "-1"], ["--scales", "nan"]])
 def test_bad_settings_are_refused_before_any_work(tmp_path, bad):
-    with pytest.raises(ValueError, match="--sets"):
+    with pytest.raises(ValueError, match="--sets|--scales"):
         labels.run(_args(tmp_path, tmp_path / "missing", *bad))
     assert not (tmp_path / "labels.json").exists()
