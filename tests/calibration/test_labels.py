@@ -229,8 +229,8 @@ class TestScale:
         press labelled reliable at 320x240 is reliable there too, at the same circle (in
         320x240 pixels: centre and radius within 1.5 px, or one pixel of the smaller image,
         median within 0.6 px). With the
-        Mini's pixel settings unconverted, five of the 640x480 rims failed the residual
-        test and two of the 160x120 rims the visibility test."""
+        Mini's pixel settings unconverted, seven of the 640x480 rims fail the residual test
+        and one of the 160x120 rims the visibility test (``benchmarks/labels.json``)."""
         h, w = mini_calib.shape
         size = (round(w * factor), round(h * factor))
         interp = cv2.INTER_CUBIC if factor > 1 else cv2.INTER_AREA
