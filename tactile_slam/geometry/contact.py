@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import numpy as np
 import torch
 
 from tactile_slam.geometry.morphology import dilate, erode, fill_holes
@@ -44,17 +43,15 @@ def order_statistic(x: torch.Tensor, k: int) -> torch.Tensor:
     """The ``k``-th smallest value (0-based) of each row: ``(B, N)`` -> ``(B,)``, with
     ``0 <= k < N``.
 
-    Exact selection, and each value is gathered from ``x``, so gradients reach the
-    selected entry. On the CPU numpy's introselect finds it (on 320x240 height maps
-    0.12-0.19 ms against 0.30-0.55 ms for ``torch.kthvalue``); elsewhere
-    ``torch.kthvalue``.
+    Exact selection by ``torch.kthvalue`` on every device, and each value is gathered
+    from ``x``, so gradients reach the selected entry. On the CPU numpy's introselect
+    was once the faster (0.12-0.19 ms against 0.30-0.55 ms on 320x240 height maps, Intel
+    VM, 2026-11-27); with numpy 2.4.6 on the same machine it takes 0.92 ms against 0.39 ms
+    for ``torch.kthvalue`` (2026-11-29, docs/benchmarks.md), whose version the project pins.
     """
     if x.ndim != 2 or not 0 <= k < x.shape[1]:
         raise ValueError(f"order_statistic: need (B, N) rows and 0 <= k < N, got shape {tuple(x.shape)} and k = {k}")
-    if x.device.type == "cpu":
-        idx = torch.from_numpy(np.argpartition(x.detach().numpy(), k, axis=1)[:, k:k + 1])
-    else:
-        idx = torch.kthvalue(x, k + 1, dim=1).indices[:, None]
+    idx = torch.kthvalue(x, k + 1, dim=1).indices[:, None]
     return torch.gather(x, 1, idx)[:, 0]
 
 
