@@ -44,10 +44,11 @@ def order_statistic(x: torch.Tensor, k: int) -> torch.Tensor:
     ``0 <= k < N``.
 
     Exact selection by ``torch.kthvalue`` on every device, and each value is gathered
-    from ``x``, so gradients reach the selected entry. On the CPU numpy's introselect
-    was once the faster (0.12-0.19 ms against 0.30-0.55 ms on 320x240 height maps, Intel
-    VM, 2026-11-27); with numpy 2.4.6 on the same machine it takes 0.92 ms against 0.39 ms
-    for ``torch.kthvalue`` (2026-11-29, docs/benchmarks.md), whose version the project pins.
+    from ``x``, so gradients reach the selected entry. Which CPU selection is faster
+    depends on the CPU: on 320x240 height maps numpy's introselect took 0.12-0.19 ms
+    against 0.30-0.55 ms on the Intel Xeon VM (2026-11-27), but 0.76-0.98 ms against
+    0.35-0.43 ms on the AMD EPYC VM (2026-11-29, numpy 2.4.6; docs/benchmarks.md).
+    ``torch.kthvalue`` has the smaller worst case, and its version is pinned.
     """
     if x.ndim != 2 or not 0 <= k < x.shape[1]:
         raise ValueError(f"order_statistic: need (B, N) rows and 0 <= k < N, got shape {tuple(x.shape)} and k = {k}")
