@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import kornia
 import torch
 
@@ -27,6 +29,15 @@ def _central_diff(f: torch.Tensor, dim: int) -> torch.Tensor:
 def divergence(gradients: torch.Tensor) -> torch.Tensor:
     """``d gx/dx + d gy/dy`` by central differences. ``(B, H, W, 2)`` -> ``(B, H, W)``."""
     return _central_diff(gradients[..., 0], -1) + _central_diff(gradients[..., 1], -2)
+
+
+@lru_cache(maxsize=8)
+def gaussian_kernel(ksize: int, sigma: float, dtype: torch.dtype, device: str) -> torch.Tensor:
+    """kornia's ``(1, ksize)`` Gaussian kernel, built once per setting: ``gaussian_blur2d``
+    builds it (and checks sigma) on every call, about half of its time on a contact window
+    (0.59 against 0.32 ms for a 130x170 window; the same values)."""
+    sigma_t = torch.tensor([[sigma]], dtype=dtype, device=device)
+    return kornia.filters.get_gaussian_kernel1d(ksize, sigma_t)
 
 
 def curvature(
@@ -59,7 +70,8 @@ def curvature(
     r0, r1, c0, c1 = box
     rows, cols = window_around((r0, r1 - 1, c0, c1 - 1), ksize // 2 + 1, contact.shape[1:])
     div = divergence(gradients[:, rows, cols]).unsqueeze(1)
-    blurred = kornia.filters.gaussian_blur2d(div, (ksize, ksize), (sigma, sigma), border_type="reflect")
+    kernel = gaussian_kernel(ksize, sigma, div.dtype, str(div.device))
+    blurred = kornia.filters.filter2d_separable(div, kernel, kernel, border_type="reflect")
     lap = blurred.squeeze(1) * as_weights(contact[:, rows, cols], blurred.dtype)
     out[:, rows, cols] = lap.clamp(-clip, clip)
     return out
