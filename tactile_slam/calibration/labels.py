@@ -255,7 +255,8 @@ def detect_contact_circle(
         background: ``(H, W, 3)`` BGR background, same size.
         ball_radius_px: ball radius in pixels.
         max_indentation_px: deepest plausible indentation in pixels.
-        cfg: detector settings.
+        cfg: detector settings in this image's pixels (``DetectionConfig().at_scale(mm_per_px)``
+            for an image at another scale than :data:`PIXEL_SCALE_MM`).
         reldir: press name carried into the label and error messages.
 
     Returns:
