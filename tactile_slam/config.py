@@ -375,6 +375,10 @@ class ReconConfig:
     # Poisson input budget: more voxel-averaged points than this coarsen the voxel and
     # the cell together (bounds meshing time and memory on large scans; docs/reconstruction.md)
     poisson_max_points: int = 500_000
+    # Open3D's Poisson threads (-1: every core). Its multi-threaded solver segfaults at
+    # random, more often on a busy CPU (isl-org/Open3D#6828, #7229; seen here once in
+    # the test suite): one thread by default, so a crash cannot take a run's results.
+    poisson_threads: int = 1
     trim_density_quantile: float = 0.02
     trim_distance_mm: float = 0.5
     # also mesh every group besides the main one, each in its own frame (groups/group_<label>/)

@@ -131,6 +131,26 @@ def test_poisson_sphere_is_watertight_and_accurate():
     assert float((mesh.normals * mesh.vertices).sum(1).min()) > 0
 
 
+@pytest.mark.parametrize("threads", [-1, 2])
+def test_poisson_threads_give_the_same_surface(threads):
+    """One Poisson thread (the default: Open3D's multi-threaded solver can segfault) and
+    several give the same closed sphere to within a small fraction of a cell."""
+    cfg = ReconConfig(poisson_min_depth=6, poisson_max_depth=6)
+    p, n = sphere_samples(20000, 3e-3)
+    one, s_one = poisson_mesh(p, n, cfg)
+    many, s_many = poisson_mesh(p, n, ReconConfig(poisson_min_depth=6, poisson_max_depth=6, poisson_threads=threads))
+    assert s_one["closed"] and s_many["closed"] and s_one["poisson_depth"] == s_many["poisson_depth"]
+    for mesh in (one, many):
+        assert np.abs(mesh.vertices.norm(dim=1).numpy() * 1000 - 3.0).mean() < 0.02
+
+
+@pytest.mark.parametrize("bad", [0, -2, 1.5, True])
+def test_poisson_threads_must_be_valid(bad):
+    p, n = sphere_samples(2000, 3e-3)
+    with pytest.raises(ReconError, match="poisson_threads"):
+        poisson_mesh(p, n, ReconConfig(poisson_threads=bad))
+
+
 def test_point_budget_must_be_positive():
     p = torch.rand(100, 3, dtype=torch.float64)
     n = torch.nn.functional.normalize(torch.rand(100, 3, dtype=torch.float64), dim=1)
