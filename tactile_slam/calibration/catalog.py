@@ -139,7 +139,13 @@ def load_calibration_set(root: str | Path, shape: tuple[int, int] | None = None)
     if not root.is_dir():
         raise CalibrationDataError(f"calibration folder not found: {root}")
     rows = read_catalog(root / "catalog.csv")
-    background = read_image(root / BACKGROUND_NAME, shape).astype(np.float32)
+    background = read_image(root / BACKGROUND_NAME).astype(np.float32)
+    if shape is not None and background.shape[:2] != tuple(shape):
+        h, w = background.shape[:2]
+        raise CalibrationDataError(
+            f"{root / BACKGROUND_NAME} is {w}x{h} (WxH), expected {shape[1]}x{shape[0]}: presses recorded at "
+            f"{w}x{h} need a sensor config with width {w}, height {h} and their mm_per_px (--config FILE)"
+        )
     presses = [Press(r, d, root / r / PRESS_IMAGE_NAME) for r, d in rows]
     missing = [str(p.image_path) for p in presses if not p.image_path.is_file()]
     if missing:

@@ -54,7 +54,8 @@ class TestLoadCalibrationSet:
             load_calibration_set(synthetic_calib)
 
     def test_wrong_sensor_size(self, synthetic_calib):
-        with pytest.raises(CalibrationDataError, match="expected 640x480"):
+        """A whole set at another size than the config's: the error says which config it needs."""
+        with pytest.raises(CalibrationDataError, match="is 320x240.*expected 640x480.*width 320, height 240"):
             load_calibration_set(synthetic_calib, (480, 640))
 
     def test_undecodable_image(self, synthetic_calib):
