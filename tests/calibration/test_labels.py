@@ -231,27 +231,16 @@ class TestScale:
         median within 0.6 px). With the
         Mini's pixel settings unconverted, seven of the 640x480 rims fail the residual test
         and one of the 160x120 rims the visibility test (``benchmarks/labels.json``)."""
-        h, w = mini_calib.shape
-        size = (round(w * factor), round(h * factor))
-        interp = cv2.INTER_CUBIC if factor > 1 else cv2.INTER_AREA
+        from tactile_slam.bench.labels import resampled
+
         scale = MM_PER_PX / factor
-        bg = cv2.resize(mini_calib.background, size, interpolation=interp)
-        cfg = DetectionConfig().at_scale(scale)
-        centre, radius = [], []
-        for ref in mini_labels.values():
-            if not ref.reliable:
-                continue
-            press = mini_calib.press(ref.reldir)
-            img = cv2.resize(mini_calib.image(press), size, interpolation=interp)
-            lb = detect_contact_circle(img, bg, press.ball_radius_px(scale), 2.0 / scale, cfg, ref.reldir)
-            assert lb.reliable, (ref.reldir, lb.reason)
-            # pixel centres: x_320 = (x + 0.5) / factor - 0.5
-            cx, cy = (lb.cx + 0.5) / factor - 0.5, (lb.cy + 0.5) / factor - 0.5
-            centre.append(math.hypot(cx - ref.cx, cy - ref.cy))
-            radius.append(abs(lb.radius / factor - ref.radius))
+        res = resampled(mini_calib, mini_labels, factor, MM_PER_PX, 2.0, DetectionConfig().at_scale(scale))
+        n_reliable = sum(lb.reliable for lb in mini_labels.values())
+        assert not res["flagged"] and res["reliable"] == n_reliable, res["flagged"]
+        centre, radius = res["centre_offset_px"], res["radius_difference_abs_px"]
         bound = max(1.5, 1.0 / factor)
-        assert max(centre) < bound and max(radius) < bound, (max(centre), max(radius))
-        assert np.median(centre) < 0.6 and np.median(radius) < 0.6
+        assert centre["max"] < bound and radius["max"] < bound, (centre, radius)
+        assert centre["median"] < 0.6 and radius["median"] < 0.6
 
 
 class TestLabelFiles:
