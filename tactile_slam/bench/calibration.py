@@ -21,6 +21,7 @@ from tactile_slam.calibration.evaluate import evaluate_model
 from tactile_slam.calibration.labels import label_presses
 from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.calibration.train import LOSSES, TrainConfig, train_model
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import REPO_ROOT, load_config
 
@@ -36,7 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--restarts", type=int, default=TrainConfig.restarts,
                    help="models per split (seeds seed, seed+1, ...); the best fit to the training presses is kept")
     add_device_argument(p)
-    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--threads", type=positive_int, default=1)
     p.add_argument("--repeats", type=int, default=20, help="timed full-frame decodes per model")
 
 

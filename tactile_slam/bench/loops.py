@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from tactile_slam.bench.common import rendered_frames, set_threads, timing_stats, write_json
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.config import Config, load_config
 from tactile_slam.geometry.frame import FrameBuilder, crop_to_contact
 from tactile_slam.loop.coverage import CoverageSet
@@ -67,7 +68,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--backend-objects", nargs="*", default=["seed", "shell", "lime", "knurled"],
                    help="objects for the back-end (loop gate) accuracy; none: skip")
     p.add_argument("--backend-kinds", nargs="+", default=["scan"])
-    p.add_argument("--threads", type=int, default=None,
+    p.add_argument("--threads", type=positive_int, default=None,
                    help="torch CPU threads (default: torch's choice; the online back end runs loop detection on 1)")
     p.add_argument("--config", default=None,
                    help="YAML config or preset for the tracker, detector and back end (default: GelSight Mini)")

@@ -22,6 +22,7 @@ import numpy as np
 import torch
 
 from tactile_slam.bench.common import set_threads, time_fn, timing_stats, write_json
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import Config, NormalFlowConfig
 from tactile_slam.geometry.frame import Frame, FrameBuilder
@@ -38,7 +39,7 @@ TILTS_DEG = (2.0, 5.0, 10.0, 15.0)
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objects", nargs="+", default=list(OBJECTS), help="simulator objects")
     add_device_argument(p)
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--depth-mm", type=float, default=0.8, help="reference indentation")
     p.add_argument("--repeats", type=int, default=5, help="timed calls per pair")
     p.add_argument("--fpfh-pairs", type=int, default=3,

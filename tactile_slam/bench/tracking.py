@@ -52,6 +52,7 @@ import numpy as np
 import torch
 
 from tactile_slam.bench.common import machine_info, median_per_key, set_threads, write_json
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.cli.eval import evaluate_run
 from tactile_slam.config import Config
 from tactile_slam.eval.loop_metrics import gt_loop_pairs, loop_precision_recall
@@ -91,7 +92,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loss-methods", nargs="+", default=["nf", "nf-kf", "gelslam"])
     p.add_argument("--cache", default="outputs/bench_tracking_episodes", help="episode cache folder")
     p.add_argument("--work", default=None, help="run output folder (default: a temporary folder)")
-    p.add_argument("--threads", type=int, default=None, help="torch CPU threads")
+    p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads")
     p.add_argument("--png", default=None, help="plot path (default: the JSON path with .png)")
     p.add_argument("--append", action="store_true",
                    help="merge this run into the JSON at --out: its tables and episodes replace those of the "

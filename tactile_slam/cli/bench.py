@@ -7,6 +7,8 @@ from __future__ import annotations
 
 import importlib
 
+from tactile_slam.cli.arguments import output_file
+
 BENCHMARKS = ("calibration", "geometry", "io", "labels", "loops", "pipeline", "posegraph", "reconstruction", "realtime",
               "registration", "render", "tracking")
 
@@ -17,6 +19,6 @@ def register(sub) -> None:
     for name in BENCHMARKS:
         mod = importlib.import_module(f"tactile_slam.bench.{name}")
         bp = bsub.add_parser(name, help=(mod.__doc__ or "").strip().splitlines()[0])
-        bp.add_argument("--out", default=f"benchmarks/{name}.json", help="JSON output path")
+        bp.add_argument("--out", default=f"benchmarks/{name}.json", type=output_file, help="JSON output path")
         mod.add_arguments(bp)
         bp.set_defaults(func=mod.run)

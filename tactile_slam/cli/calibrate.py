@@ -15,6 +15,7 @@ from tactile_slam.calibration.evaluate import evaluate_model, format_comparison,
 from tactile_slam.calibration.model import load_model
 from tactile_slam.calibration.train import LOSSES, TrainConfig
 from tactile_slam.calibration.workflow import labels_for, run_labelling, run_training
+from tactile_slam.cli.arguments import output_file, output_folder, positive_int
 from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import load_config
 
@@ -22,7 +23,7 @@ from tactile_slam.config import load_config
 def _common(p, threads: bool = True) -> None:
     p.add_argument("--config", default=None, help="preset name (gelsight_mini, digit) or YAML path")
     if threads:
-        p.add_argument("--threads", type=int, default=1,
+        p.add_argument("--threads", type=positive_int, default=1,
                        help="torch CPU threads (default 1: the small MLP gains nothing from more)")
 
 
@@ -106,14 +107,14 @@ def register(sub) -> None:
 
     lp = csub.add_parser("label", help="detect the contact circle of every press; write labels.csv and overlays")
     lp.add_argument("calib_dir")
-    lp.add_argument("--out", help="output folder (default: the calibration folder)")
+    lp.add_argument("--out", type=output_folder, help="output folder (default: the calibration folder)")
     lp.add_argument("--labels", help="labels CSV whose rows override detection")
     _common(lp)
     lp.set_defaults(func=_label)
 
     tp = csub.add_parser("train", help="label, train the MLP and report held-out errors")
     tp.add_argument("calib_dir")
-    tp.add_argument("--out", help="output folder (default: CALIB_DIR/model)")
+    tp.add_argument("--out", type=output_folder, help="output folder (default: CALIB_DIR/model)")
     tp.add_argument("--labels", help="labels CSV whose rows override detection")
     tp.add_argument("--hidden", default="32,32,32", help="hidden layer sizes, comma-separated")
     tp.add_argument("--epochs", type=int, default=TrainConfig.epochs)
@@ -128,7 +129,7 @@ def register(sub) -> None:
     add_device_argument(tp)
     tp.add_argument("--reference", help="a reference model to evaluate beside the new one")
     tp.add_argument("--colour-model", action="store_true", help="also fit the simulator's colour model")
-    tp.add_argument("--json", help="also write the summary to this JSON file")
+    tp.add_argument("--json", type=output_file, help="also write the summary to this JSON file")
     _common(tp)
     tp.set_defaults(func=_train)
 
@@ -140,12 +141,12 @@ def register(sub) -> None:
     ep.add_argument("--presses", choices=("auto", "all", "heldout"), default="auto",
                     help="auto: the model's held-out presses when it was trained on this folder, else all")
     add_device_argument(ep)
-    ep.add_argument("--json", help="write the results to this JSON file")
+    ep.add_argument("--json", type=output_file, help="write the results to this JSON file")
     _common(ep)
     ep.set_defaults(func=_evaluate)
 
     cp = csub.add_parser("collect", help="guided capture of a calibration set from a live sensor")
-    cp.add_argument("--out", required=True, help="new calibration folder")
+    cp.add_argument("--out", required=True, type=output_folder, help="new calibration folder")
     cp.add_argument("--camera", default="",
                     help="camera index, or part of its V4L2 name (default: the sensor's name)")
     cp.add_argument("--diameters", default="6.31", help="ball diameters in mm, comma-separated")

@@ -12,6 +12,7 @@ import torch
 
 from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.config import REPO_ROOT, Config
+from tactile_slam.cli.arguments import output_folder
 from tactile_slam.cli.eval import evaluate_run
 from tactile_slam.eval.tracking_metrics import pose_vector
 from tactile_slam.eval.trajectory import relative_to
@@ -26,7 +27,7 @@ SHARED_MINI = REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"
 
 def register(sub) -> None:
     p = sub.add_parser("demo", help="simulate a short scan, run tactile SLAM on it and evaluate against ground truth")
-    p.add_argument("--out", default="outputs/demo", help="output folder")
+    p.add_argument("--out", default="outputs/demo", type=output_folder, help="output folder")
     p.add_argument("--frames", type=int, default=250, help="frames of the simulated scan")
     p.add_argument("--object", default="seed", help="simulated object")
     p.add_argument("--seed", type=int, default=1, help="simulation seed")

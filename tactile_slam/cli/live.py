@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from tactile_slam.cli.arguments import non_negative_float, output_file_or_stdout, output_folder, positive_int
 from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import load_config
 from tactile_slam.io.dispatch import CAMERA_PREFIX, open_source
@@ -16,32 +17,51 @@ from tactile_slam.pipeline.online import OnlineOptions, OnlinePipeline
 from tactile_slam.pipeline.visualizer import KeyframePanels, NullVisualizer
 
 
+ONLINE_ONLY = ("--rate", "--buffer-frames", "--no-skip-loops", "--preview-every", "--jsonl")
+"""Options of the online pipeline that an offline ``run`` has no use for."""
+
+
 def add_online_arguments(p) -> None:
-    """Options of the online pipeline (``live`` and ``run --online``)."""
-    p.add_argument("--rate", type=float, default=1.0,
-                   help="replay speed as a multiple of the recording's frame rate; 0: lossless, as fast as "
-                        "tracking goes (recordings only)")
-    p.add_argument("--buffer-frames", type=int, default=3, help="frames that may wait before the oldest is dropped")
-    p.add_argument("--no-skip-loops", action="store_true",
+    """Options of the online pipeline (``live`` and ``run --online``). Their defaults are
+    ``None`` (resolved by :func:`online_options`), so ``run`` can tell which were given
+    (:func:`online_only_given`)."""
+    p.add_argument("--rate", type=non_negative_float, default=None,
+                   help="replay speed as a multiple of the recording's frame rate (default 1); 0: lossless, as fast "
+                        "as tracking goes (recordings only)")
+    p.add_argument("--buffer-frames", type=positive_int, default=None,
+                   help="frames that may wait before the oldest is dropped (default 3)")
+    p.add_argument("--no-skip-loops", action="store_true", default=None,
                    help="detect loops for every keyframe even when the back end falls behind")
-    p.add_argument("--preview-every", type=float, default=None, metavar="S",
+    p.add_argument("--preview-every", type=non_negative_float, default=None, metavar="S",
                    help="write preview/preview.ply and preview.png at most every S seconds")
-    p.add_argument("--jsonl", default=None, help="pose events as JSON lines to this file ('-': stdout)")
-    p.add_argument("--threads", type=int, default=None, help="torch threads of the tracker (default: unchanged)")
+    p.add_argument("--jsonl", type=output_file_or_stdout, default=None,
+                   help="pose events as JSON lines to this file ('-': stdout)")
+    p.add_argument("--threads", type=positive_int, default=None,
+                   help="torch threads of this process: the tracker (online) or the whole run (run without "
+                        "--online); default: unchanged")
+
+
+def online_only_given(args) -> list[str]:
+    """The :data:`ONLINE_ONLY` options set on the command line."""
+    return [opt for opt in ONLINE_ONLY if getattr(args, opt[2:].replace("-", "_")) is not None]
 
 
 def online_options(args) -> OnlineOptions:
+    """:class:`OnlineOptions` of the parsed arguments (its own defaults where not given)."""
+    given = {}
+    if args.rate is not None:
+        given["rate"] = args.rate if args.rate > 0 else None
+    if args.buffer_frames is not None:
+        given["buffer_frames"] = args.buffer_frames
     return OnlineOptions(
         method=args.method, device=args.device, model=args.model, progress=not args.no_progress,
-        mesh=not args.no_mesh, rate=args.rate if args.rate > 0 else None, buffer_frames=args.buffer_frames,
-        skip_loops=not args.no_skip_loops, preview_every_s=args.preview_every, jsonl=args.jsonl,
-        tracker_threads=args.threads,
-    )
+        mesh=not args.no_mesh, skip_loops=not args.no_skip_loops, preview_every_s=args.preview_every,
+        jsonl=args.jsonl, tracker_threads=args.threads, **given)
 
 
 def register(sub) -> None:
     p = sub.add_parser("live", help="track a live sensor with loop closure in parallel (Ctrl+C saves and stops)")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, type=output_folder, help="output folder")
     p.add_argument("--camera", default="GelSight Mini", help="device index or a V4L2 name it contains")
     p.add_argument("--config", default=None, help="YAML config (ours or GelSLAM's) or a preset name")
     add_device_argument(p)

@@ -38,8 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         rc = args.func(args)
         return rc if isinstance(rc, int) else 0
-    except (ValueError, FileNotFoundError, RuntimeError) as exc:
-        # Errors carry a message that names the problem; show it without a traceback.
+    except (ValueError, OSError, RuntimeError) as exc:
+        # Errors carry a message that names the problem (an OSError its path: a full disk,
+        # a folder removed during the run); show it without a traceback.
         print(f"tactile-slam {args.command}: error: {exc}", file=sys.stderr)
         return 2
 

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from tactile_slam.cli.arguments import output_folder
 from tactile_slam.config import load_config
 from tactile_slam.io.dispatch import open_source
 from tactile_slam.io.frames import FrameSource
@@ -25,7 +26,7 @@ from tactile_slam.io.video import write_video
 def register(sub) -> None:
     p = sub.add_parser("record", help="record a scan folder from a live sensor or another input")
     p.add_argument("source", help="camera:INDEX, camera:NAME (e.g. 'camera:GelSight Mini'), or a video/image folder")
-    p.add_argument("--out", required=True, help="scan folder to create")
+    p.add_argument("--out", required=True, type=output_folder, help="scan folder to create")
     p.add_argument("--config", default=None, help="YAML config (ours or GelSLAM's) or a preset name")
     p.add_argument("--seconds", type=float, default=None, help="stop after this many seconds of frames")
     p.add_argument("--frames", type=int, default=None, help="stop after this many frames")

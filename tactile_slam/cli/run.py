@@ -4,8 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import torch
+
+from tactile_slam.cli.arguments import output_folder, positive_int
 from tactile_slam.cli.devices import add_device_argument
-from tactile_slam.cli.live import add_online_arguments, caveats, online_options, report
+from tactile_slam.cli.live import add_online_arguments, caveats, online_only_given, online_options, report
 from tactile_slam.config import load_config
 from tactile_slam.io.dispatch import open_source
 from tactile_slam.pipeline.offline import METHODS, OfflinePipeline, RunOptions
@@ -16,14 +19,14 @@ from tactile_slam.pipeline.visualizer import KeyframePanels, NullVisualizer
 def register(sub) -> None:
     p = sub.add_parser("run", help="track a recorded scan, video or gradient-map sequence")
     p.add_argument("scan", help="recorded-scan folder, video file, image folder or gradient-map sequence")
-    p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--out", required=True, type=output_folder, help="output folder")
     p.add_argument("--config", default=None, help="YAML config (ours or GelSLAM's) or a preset name")
     add_device_argument(p)
     p.add_argument("--method", default="gelslam", choices=METHODS,
                    help="gelslam (full system, default), ablations gs-onlysift/gs-onlynf/gs-imagesift, "
                         "nf-kf (tracker only) or nf (frame-to-frame NormalFlow)")
     p.add_argument("--model", default=None, help="calibration model file (default: the sensor's packaged model)")
-    p.add_argument("--batch-size", type=int, default=8, help="frames per geometry batch")
+    p.add_argument("--batch-size", type=positive_int, default=8, help="frames per geometry batch")
     p.add_argument("--resize", action="store_true",
                    help="resize frames of another size to the sensor's working size (default: refuse them)")
     p.add_argument("--keyframe-panels", action="store_true", help="write a geometry picture per keyframe")
@@ -35,6 +38,10 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
+    if not args.online and online_only_given(args):
+        raise ValueError(f"{', '.join(online_only_given(args))}: used only with --online (add it, or drop them)")
+    if args.threads is not None and not args.online:  # online, OnlinePipeline sets the tracker's
+        torch.set_num_threads(args.threads)
     config = load_config(args.config) if args.config else None
     source = open_source(args.scan, config, resize=args.resize)
     config = config or getattr(source, "config", None) or load_config(None)

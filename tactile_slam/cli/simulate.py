@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 
+from tactile_slam.cli.arguments import output_folder
 from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import load_config
 from tactile_slam.sim.episode import LEVELS, SimulationSettings, simulate_episode
@@ -31,7 +32,7 @@ def register(sub) -> None:
     p.add_argument("--background", default=None, help="background image (default: real Mini background or synthetic)")
     p.add_argument("--config", default=None, help="sensor preset name or config YAML")
     add_device_argument(p, "device of the rendered maps (cpu, cuda, auto)")
-    p.add_argument("--out", required=True, help="output episode folder")
+    p.add_argument("--out", required=True, type=output_folder, help="output episode folder")
     p.set_defaults(func=run)
 
 

@@ -22,6 +22,7 @@ the gradient level needs nothing and writes everything but the video and backgro
 from __future__ import annotations
 
 import dataclasses
+import math
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -186,6 +187,12 @@ def simulate_episode(out_dir: str | Path, settings: SimulationSettings, config: 
     """
     if settings.level not in LEVELS:
         raise EpisodeError(f"level must be one of {LEVELS}, got {settings.level!r}")
+    if not (math.isfinite(settings.noise_std) and settings.noise_std >= 0):
+        raise EpisodeError(f"image noise must be a finite std >= 0 grey levels, got {settings.noise_std}")
+    if not (math.isfinite(settings.mesh_scale) and settings.mesh_scale > 0):
+        raise EpisodeError(f"mesh scale must be finite and > 0, got {settings.mesh_scale}")
+    if settings.batch < 1:
+        raise EpisodeError(f"batch must be >= 1 frame, got {settings.batch}")
     config = config or Config()
     motion_config = motion_config or MotionConfig()
     colour_model = background = None

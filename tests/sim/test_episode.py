@@ -90,6 +90,18 @@ def test_errors(tmp_path):
     assert main(["simulate", "--object", "teapot", "--out", str(tmp_path / "x")]) == 2
 
 
+@pytest.mark.parametrize("field, value, message", [
+    ("noise_std", -1.0, "image noise"), ("noise_std", float("nan"), "image noise"),
+    ("mesh_scale", 0.0, "mesh scale"), ("mesh_scale", float("inf"), "mesh scale"), ("batch", 0, "batch"),
+])
+def test_bad_settings_are_refused_before_rendering(tmp_path, field, value, message):
+    """A negative or NaN noise std was skipped silently (only ``> 0`` adds noise), so an
+    episode meant to be noisy came out clean; bad values now stop before anything is written."""
+    with pytest.raises(EpisodeError, match=message):
+        simulate_episode(tmp_path / "ep", SimulationSettings(frames=12, **{field: value}))
+    assert not (tmp_path / "ep").exists()
+
+
 @pytest.mark.slow
 def test_image_level_decodes_back_to_ground_truth(tmp_path, mini_data):
     """Synthetic images through the real calibration MLP give the rendered gradients back
