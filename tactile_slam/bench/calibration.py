@@ -30,15 +30,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=str(REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"),
                    help="folder holding calibration/ and reference_model/nnmodel.pth")
     p.add_argument("--hidden", default="16,16;32,32,32;64,64,64", help="sizes to compare, ';'-separated")
-    p.add_argument("--seeds", type=int, default=3, help="seeded splits per size")
-    p.add_argument("--epochs", type=int, default=TrainConfig.epochs)
-    p.add_argument("--lr-step", type=int, default=TrainConfig.lr_step)
+    p.add_argument("--seeds", type=positive_int, default=3, help="seeded splits per size")
+    p.add_argument("--epochs", type=positive_int, default=TrainConfig.epochs)
+    p.add_argument("--lr-step", type=positive_int, default=TrainConfig.lr_step)
     p.add_argument("--loss", default=TrainConfig.loss, choices=sorted(LOSSES))
-    p.add_argument("--restarts", type=int, default=TrainConfig.restarts,
+    p.add_argument("--restarts", type=positive_int, default=TrainConfig.restarts,
                    help="models per split (seeds seed, seed+1, ...); the best fit to the training presses is kept")
     add_device_argument(p)
     p.add_argument("--threads", type=positive_int, default=1)
-    p.add_argument("--repeats", type=int, default=20, help="timed full-frame decodes per model")
+    p.add_argument("--repeats", type=positive_int, default=20, help="timed full-frame decodes per model")
 
 
 def run(args) -> Path:

@@ -16,6 +16,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from tactile_slam.bench.common import time_fn, timing_stats, write_json
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.config import Config
 from tactile_slam.io.camera import crop_raw
 from tactile_slam.io.dataset import FrameDataset, collate
@@ -23,8 +24,8 @@ from tactile_slam.io.video import VideoSource, write_video
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--frames", type=int, default=300, help="frames in the test video (>= 200)")
-    parser.add_argument("--batch-size", type=int, default=16)
+    parser.add_argument("--frames", type=positive_int, default=300, help="frames in the test video (>= 200)")
+    parser.add_argument("--batch-size", type=positive_int, default=16)
 
 
 def sensor_like_frames(n: int, shape: tuple[int, int], seed: int = 0) -> np.ndarray:

@@ -37,13 +37,14 @@ from tactile_slam.calibration.catalog import CalibrationSet, load_calibration_se
 from tactile_slam.calibration.evaluate import evaluate_model
 from tactile_slam.calibration.labels import DetectionConfig, PressLabel, detect_contact_circle
 from tactile_slam.calibration.model import load_model
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.config import REPO_ROOT, load_config
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=str(REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"),
                    help="folder holding calibration/ and reference_model/nnmodel.pth")
-    p.add_argument("--sets", type=int, default=8, help="relit copies of the presses")
+    p.add_argument("--sets", type=positive_int, default=8, help="relit copies of the presses")
     p.add_argument("--gain", type=float, default=0.25, help="per-channel gains drawn from 1 +- this")
     p.add_argument("--offset", type=float, default=10.0, help="offsets drawn from +- this (grey levels)")
     p.add_argument("--noise", default="0.5,1.5", help="noise sigma range in grey levels, 'low,high'")

@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from tactile_slam.bench.common import PeakMemory, median_per_key, write_json
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.cli.devices import device_arg
 from tactile_slam.config import Config, resolve_device
 from tactile_slam.io.dispatch import open_source
@@ -32,14 +33,14 @@ OUTCOME_KEYS = ("frames", "contact_frames", "keyframes", "sessions", "loops", "g
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--object", default="seed", help="simulator object")
     p.add_argument("--kind", default="tracking", help="motion kind of the episode")
-    p.add_argument("--frames", type=int, default=300, help="episode length")
+    p.add_argument("--frames", type=positive_int, default=300, help="episode length")
     p.add_argument("--level", default="image", choices=("image", "gradients"), help="input level")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--devices", nargs="+", type=device_arg, default=None,
                    help="devices to compare (default: cpu, and cuda when present)")
     p.add_argument("--method", default="gelslam", help="pipeline method (see tactile-slam run --method)")
     p.add_argument("--mesh", action="store_true", help="also reconstruct (default: poses only)")
-    p.add_argument("--repeats", type=int, default=3, help="runs per device")
+    p.add_argument("--repeats", type=positive_int, default=3, help="runs per device")
 
 
 def summarise(runs: list[dict]) -> dict:

@@ -19,6 +19,7 @@ import numpy as np
 import torch
 
 from tactile_slam.bench.common import timing_stats, write_json
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.incremental import IncrementalSolver
@@ -28,12 +29,12 @@ from tactile_slam.posegraph.synthetic import SyntheticScan, add_step, replay_ste
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--keyframes", type=int, default=5000, help="keyframes of the large graph")
-    p.add_argument("--edges", type=int, default=15000, help="edges (odometry + loops) of the large graph")
-    p.add_argument("--repeats", type=int, default=3, help="timed full solves (each from the odometry start)")
-    p.add_argument("--pypose-sizes", type=int, nargs="*", default=[50, 500],
+    p.add_argument("--keyframes", type=positive_int, default=5000, help="keyframes of the large graph")
+    p.add_argument("--edges", type=positive_int, default=15000, help="edges (odometry + loops) of the large graph")
+    p.add_argument("--repeats", type=positive_int, default=3, help="timed full solves (each from the odometry start)")
+    p.add_argument("--pypose-sizes", type=positive_int, nargs="*", default=[50, 500],
                    help="keyframes of the graphs timed with pypose.optim.LM (loops = keyframes / 2)")
-    p.add_argument("--pypose-iters", type=int, default=2, help="pypose.optim.LM iterations timed per size")
+    p.add_argument("--pypose-iters", type=positive_int, default=2, help="pypose.optim.LM iterations timed per size")
     p.add_argument("--pypose-time-limit", type=float, default=120.0, help="seconds allowed per pypose size")
     p.add_argument("--skip-incremental", action="store_true", help="skip the incremental replay")
 

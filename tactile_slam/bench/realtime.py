@@ -20,6 +20,7 @@ import numpy as np
 import torch
 
 from tactile_slam.bench.common import write_json
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.config import Config
 from tactile_slam.eval.tracking_metrics import per_axis_mae
 from tactile_slam.io.gradients import EPISODE_NPZ, GradientSequence
@@ -32,12 +33,12 @@ from tactile_slam.sim.episode import SimulationSettings, read_episode, simulate_
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--object", default="seed", help="catalogue object")
     p.add_argument("--kind", default="contact_loss", help="motion kind of the episode")
-    p.add_argument("--frames", type=int, default=300, help="episode length (the replay loops it)")
+    p.add_argument("--frames", type=positive_int, default=300, help="episode length (the replay loops it)")
     p.add_argument("--replays", default="300,10500", help="comma-separated replay lengths in frames")
     p.add_argument("--rate", type=float, default=1.0, help="replay speed (1: the sensor's 25 Hz)")
-    p.add_argument("--buffer-frames", type=int, default=3)
-    p.add_argument("--tracker-threads", type=int, default=1, help="torch threads of the tracker process")
-    p.add_argument("--backend-threads", type=int, default=1, help="torch threads of the back-end process")
+    p.add_argument("--buffer-frames", type=positive_int, default=3)
+    p.add_argument("--tracker-threads", type=positive_int, default=1, help="torch threads of the tracker process")
+    p.add_argument("--backend-threads", type=positive_int, default=1, help="torch threads of the back-end process")
     p.add_argument("--offline-max-frames", type=int, default=3000,
                    help="run the offline comparison only on replays up to this length")
     p.add_argument("--seed", type=int, default=4)

@@ -47,6 +47,7 @@ import numpy as np
 import torch
 
 from tactile_slam.bench.common import rendered_frames, write_json
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.config import Config, load_config
 from tactile_slam.cli.eval import held_loop_report, loop_report
 from tactile_slam.eval.loop_funnel import revisit_funnel
@@ -76,8 +77,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--level", choices=["gradients", "image"], default="gradients",
                         help="simulated input: gradient maps, or video through the calibration model")
     parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
-    parser.add_argument("--samples", type=int, default=50_000, help="surface samples for CD/F-score")
-    parser.add_argument("--touches", type=int, default=50, help="NCD touches")
+    parser.add_argument("--samples", type=positive_int, default=50_000, help="surface samples for CD/F-score")
+    parser.add_argument("--touches", type=positive_int, default=50, help="NCD touches")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--partial", action="store_true", help="trim the Poisson mesh (watertight=False)")
     parser.add_argument("--work", default=None, help="keep episodes and runs here (default: a temporary folder)")

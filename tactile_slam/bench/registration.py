@@ -41,7 +41,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     add_device_argument(p)
     p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--depth-mm", type=float, default=0.8, help="reference indentation")
-    p.add_argument("--repeats", type=int, default=5, help="timed calls per pair")
+    p.add_argument("--repeats", type=positive_int, default=5, help="timed calls per pair")
     p.add_argument("--fpfh-pairs", type=int, default=3,
                    help="pairs per object for FPFH+RANSAC+ICP (slow; 0 skips it)")
     p.add_argument("--wrong-deg", type=float, default=1.0)

@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from tactile_slam.bench.common import time_fn, timing_stats, write_json
+from tactile_slam.cli.arguments import positive_int
 from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import Config
 from tactile_slam.sim.episode import SimulationSettings, simulate_episode
@@ -20,8 +21,8 @@ from tactile_slam.sim.renderer import GelRenderer
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objects", default=",".join(sorted(OBJECTS)), help="comma-separated catalogue objects")
-    p.add_argument("--batch", type=int, default=32, help="frames rendered per call")
-    p.add_argument("--repeats", type=int, default=5, help="timed batches per object")
+    p.add_argument("--batch", type=positive_int, default=32, help="frames rendered per call")
+    p.add_argument("--repeats", type=positive_int, default=5, help="timed batches per object")
     p.add_argument("--episode-objects", default="seed,lime",
                    help="objects for the end-to-end 520-frame tracking episode timing ('' to skip)")
     add_device_argument(p)

@@ -78,7 +78,7 @@ class BenchConfigError(ValueError):
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--objects", nargs="+", default=["seed", "shell", "dice", "lime", "handle", "knurled"])
     p.add_argument("--seeds", nargs="+", type=int, default=[0, 1])
-    p.add_argument("--frames", type=int, default=200, help="frames per tracking episode (10 lead-in)")
+    p.add_argument("--frames", type=positive_int, default=200, help="frames per tracking episode (10 lead-in)")
     p.add_argument("--methods", nargs="+",
                    default=["nf", "nf-kf", "icp", "gelslam", "gs-onlysift", "gs-onlynf"],
                    help="methods on the gradient-level tracking set (add fpfh: seconds per frame)")
@@ -88,7 +88,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--image-methods", nargs="+", default=["gelslam", "gs-imagesift"])
     p.add_argument("--protocol", choices=["tracking", "contact_loss", "both"], default="both")
     p.add_argument("--loss-objects", nargs="+", default=["seed", "shell", "knurled"])
-    p.add_argument("--loss-frames", type=int, default=310, help="frames per contact-loss episode")
+    p.add_argument("--loss-frames", type=positive_int, default=310, help="frames per contact-loss episode")
     p.add_argument("--loss-methods", nargs="+", default=["nf", "nf-kf", "gelslam"])
     p.add_argument("--cache", default="outputs/bench_tracking_episodes", help="episode cache folder")
     p.add_argument("--work", default=None, help="run output folder (default: a temporary folder)")

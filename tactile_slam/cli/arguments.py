@@ -74,6 +74,14 @@ def positive_int(value: str) -> int:
     return n
 
 
+def positive_int_list(value: str) -> tuple[int, ...]:
+    """Comma-separated integers >= 1, e.g. layer sizes ``32,32,32``."""
+    try:
+        return tuple(positive_int(v.strip()) for v in value.split(","))
+    except argparse.ArgumentTypeError as exc:
+        raise argparse.ArgumentTypeError(f"expected comma-separated integers >= 1, got {value!r} ({exc})") from None
+
+
 def non_negative_float(value: str) -> float:
     """A finite number >= 0 (rates, periods)."""
     try:

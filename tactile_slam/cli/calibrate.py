@@ -15,7 +15,7 @@ from tactile_slam.calibration.evaluate import evaluate_model, format_comparison,
 from tactile_slam.calibration.model import load_model
 from tactile_slam.calibration.train import LOSSES, TrainConfig
 from tactile_slam.calibration.workflow import labels_for, run_labelling, run_training
-from tactile_slam.cli.arguments import output_file, output_folder, positive_int
+from tactile_slam.cli.arguments import output_file, output_folder, positive_int, positive_int_list
 from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import load_config
 
@@ -43,7 +43,7 @@ def _train(args) -> int:
     torch.set_num_threads(args.threads)
     sensor = load_config(args.config).sensor
     cfg = TrainConfig(
-        hidden=tuple(int(h) for h in args.hidden.split(",")), epochs=args.epochs, batch_size=args.batch_size,
+        hidden=args.hidden, epochs=args.epochs, batch_size=args.batch_size,
         lr=args.lr, lr_step=args.lr_step, loss=args.loss, seed=args.seed, device=args.device,
         restarts=args.restarts,
     )
@@ -116,7 +116,7 @@ def register(sub) -> None:
     tp.add_argument("calib_dir")
     tp.add_argument("--out", type=output_folder, help="output folder (default: CALIB_DIR/model)")
     tp.add_argument("--labels", help="labels CSV whose rows override detection")
-    tp.add_argument("--hidden", default="32,32,32", help="hidden layer sizes, comma-separated")
+    tp.add_argument("--hidden", type=positive_int_list, default=(32, 32, 32), help="hidden layer sizes, comma-separated")
     tp.add_argument("--epochs", type=int, default=TrainConfig.epochs)
     tp.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
     tp.add_argument("--lr", type=float, default=TrainConfig.lr)

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tactile_slam.cli.arguments import output_folder
+from tactile_slam.cli.arguments import output_folder, positive_int
 from tactile_slam.eval.loop_metrics import loop_precision_recall
 from tactile_slam.eval.tracking_metrics import AXES, per_axis_errors, tracking_report
 from tactile_slam.eval.trajectory import TrajectoryError, check_trajectory, relative_to, valid_mask
@@ -33,8 +33,8 @@ def register(sub) -> None:
     p.add_argument("--gt", required=True, help="episode folder written by `tactile-slam simulate`")
     p.add_argument("--out", default=None, type=output_folder, help="output folder (default: RUN_DIR)")
     p.add_argument("--no-recon", action="store_true", help="skip reconstruction metrics")
-    p.add_argument("--touches", type=int, default=100, help="NCD touches")
-    p.add_argument("--samples", type=int, default=100_000, help="surface samples per mesh (Chamfer, F-score)")
+    p.add_argument("--touches", type=positive_int, default=100, help="NCD touches")
+    p.add_argument("--samples", type=positive_int, default=100_000, help="surface samples per mesh (Chamfer, F-score)")
     p.set_defaults(func=run)
 
 

@@ -53,9 +53,15 @@ def test_relight_and_offset():
     assert labels.label_offset(PressLabel("p", 12.0, 20.0, 30.0), ref, 320, False) == pytest.approx(5.0)
 
 
-@pytest.mark.parametrize("bad", [["--sets", "0"], ["--gain", "1.0"], ["--offset", "-1"], ["--noise", "2,1"],
+@pytest.mark.parametrize("bad", [["--gain", "1.0"], ["--offset", "-1"], ["--noise", "2,1"],
                                  ["--scales", "2,0"], ["--scales", "-1"], ["--scales", "nan"]])
 def test_bad_settings_are_refused_before_any_work(tmp_path, bad):
     with pytest.raises(ValueError, match="--sets|--scales"):
         labels.run(_args(tmp_path, tmp_path / "missing", *bad))
     assert not (tmp_path / "labels.json").exists()
+
+
+def test_no_relit_sets_is_a_parse_error(tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        _args(tmp_path, tmp_path / "missing", "--sets", "0")
+    assert "argument --sets: must be >= 1" in capsys.readouterr().err

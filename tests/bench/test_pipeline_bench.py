@@ -82,8 +82,10 @@ def test_cuda_without_cuda_is_refused_before_running(tmp_path, capsys):
 
 @pytest.mark.parametrize("option", ["--repeats", "--frames"])
 def test_bad_repeats_is_an_error(tmp_path, capsys, option):
-    assert main(["bench", "pipeline", "--out", str(tmp_path / "p.json"), option, "0", "--devices", "cpu"]) == 2
-    assert option in capsys.readouterr().err and not (tmp_path / "p.json").exists()
+    with pytest.raises(SystemExit) as exc:
+        main(["bench", "pipeline", "--out", str(tmp_path / "p.json"), option, "0", "--devices", "cpu"])
+    assert exc.value.code == 2
+    assert f"argument {option}: must be >= 1" in capsys.readouterr().err and not (tmp_path / "p.json").exists()
 
 
 def test_a_device_named_twice_runs_once(tmp_path):

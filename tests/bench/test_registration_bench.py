@@ -41,8 +41,10 @@ def test_tiny_run_reports_every_method_and_the_sweep(tmp_path):
     assert caps == {(k, c) for k in (250, 500, 1000, 3000, "all") for c in (10, 20, 50)}
 
 
-@pytest.mark.parametrize("bad", [["--fpfh-pairs", "-1"], ["--repeats", "0"]])
-def test_bad_counts_are_refused_before_any_work(tmp_path, bad):
+def test_bad_counts_are_refused_before_any_work(tmp_path, capsys):
     with pytest.raises(ValueError, match="fpfh-pairs"):
-        registration.run(_args(tmp_path, *bad))
+        registration.run(_args(tmp_path, "--fpfh-pairs", "-1"))
+    with pytest.raises(SystemExit):  # a count below 1: refused while parsing
+        _args(tmp_path, "--repeats", "0")
+    assert "argument --repeats: must be >= 1" in capsys.readouterr().err
     assert not (tmp_path / "registration.json").exists()

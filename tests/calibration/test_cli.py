@@ -1,5 +1,7 @@
 import json
 
+import pytest
+
 from tactile_slam.calibration.labels import read_labels
 from tactile_slam.calibration.model import load_model
 from tactile_slam.cli.main import main
@@ -53,6 +55,20 @@ def test_bad_restarts_fail_before_labelling(synthetic_calib, tmp_path, capsys):
     assert main(["calibrate", "train", str(synthetic_calib), "--out", str(tmp_path / "m"), "--restarts", "0"]) == 2
     assert "restarts must be a positive integer" in capsys.readouterr().err
     assert not (tmp_path / "m").exists()
+
+
+def test_bad_schedule_fails_before_labelling(synthetic_calib, tmp_path, capsys):
+    """``--lr-step 0`` ended in a ZeroDivisionError traceback after the labelling."""
+    assert main(["calibrate", "train", str(synthetic_calib), "--out", str(tmp_path / "m"), "--lr-step", "0"]) == 2
+    assert "lr_step must be >= 1" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
+
+
+def test_bad_hidden_sizes_are_a_parse_error(synthetic_calib, tmp_path, capsys):
+    for bad in ("abc", "32,,32", "0,32"):
+        with pytest.raises(SystemExit):
+            main(["calibrate", "train", str(synthetic_calib), "--out", str(tmp_path / "m"), "--hidden", bad])
+        assert "argument --hidden: expected comma-separated integers >= 1" in capsys.readouterr().err
 
 
 def test_heldout_needs_matching_data(synthetic_calib, mini_data, capsys):

@@ -83,7 +83,10 @@ class TestTrainModel:
         "cfg, match",
         [(TrainConfig(loss="huber2"), "unknown loss"), (TrainConfig(epochs=0), "positive"),
          (TrainConfig(hidden=()), "hidden"), (TrainConfig(restarts=0), "restarts"),
-         (TrainConfig(restarts=1.5), "restarts"), (TrainConfig(restarts=True), "restarts")],
+         (TrainConfig(restarts=1.5), "restarts"), (TrainConfig(restarts=True), "restarts"),
+         (TrainConfig(lr=float("nan")), "positive"), (TrainConfig(lr=float("inf")), "positive"),
+         (TrainConfig(lr_step=0), "lr_step"), (TrainConfig(lr_gamma=0.0), "lr_gamma"),
+         (TrainConfig(lr_gamma=1.5), "lr_gamma")],
     )
     def test_bad_config(self, cfg, match):
         with pytest.raises(ValueError, match=match):

@@ -16,6 +16,7 @@ from tactile_slam.cli.arguments import (
     output_file_or_stdout,
     output_folder,
     positive_int,
+    positive_int_list,
 )
 from tactile_slam.cli.main import main
 
@@ -77,6 +78,13 @@ class TestNumbers:
     def test_positive_int_refuses(self, text):
         with pytest.raises(argparse.ArgumentTypeError):
             positive_int(text)
+
+    def test_positive_int_list(self):
+        assert positive_int_list("32,32,32") == (32, 32, 32)
+        assert positive_int_list("64") == (64,)
+        for bad in ("", "32,", "0,8", "a,b"):
+            with pytest.raises(argparse.ArgumentTypeError, match="comma-separated integers"):
+                positive_int_list(bad)
 
     @pytest.mark.parametrize("text, value", [("0", 0.0), ("2.5", 2.5), ("1e-3", 1e-3)])
     def test_non_negative_float(self, text, value):
@@ -152,3 +160,14 @@ def test_offline_run_uses_the_threads_option(short_sequence, tmp_path):
                  "--method", "nf-kf", "--threads", str(n)]) == 0
     assert torch.get_num_threads() == n
     assert (tmp_path / "o" / "poses.npy").exists()
+
+
+@pytest.mark.parametrize("argv", [
+    ["bench", "registration", "--repeats", "0"], ["bench", "tracking", "--frames", "0"],
+    ["bench", "loops", "--sizes", "100", "0"], ["bench", "posegraph", "--keyframes", "-5"],
+    ["bench", "reconstruction", "--touches", "0"], ["eval", "RUN", "--gt", "EP", "--samples", "0"],
+])
+def test_counts_below_one_are_parse_errors(argv, tmp_path, capsys):
+    """Repeat, frame, size and sample counts of the benches and ``eval`` are >= 1 (``eval
+    --samples 0`` used to score meshes from no samples at all)."""
+    assert "must be >= 1" in _parse_error(argv, capsys)
