@@ -10,52 +10,29 @@ from __future__ import annotations
 
 import argparse
 import math
-import os
-from pathlib import Path
+
+from tactile_slam.pipeline.outputs import OutputPathError, check_output_file, check_output_folder
 
 STDOUT = "-"
 
 
-def _writable_parent(path: Path, what: str) -> None:
-    """The nearest existing ancestor of ``path`` must be a folder this process can create
-    entries in (the missing folders between are created later)."""
-    parent = path.absolute().parent
-    while not parent.exists():
-        parent = parent.parent
-    if not parent.is_dir():
-        raise argparse.ArgumentTypeError(f"{what} {path}: {parent} is a file, not a folder")
-    if not os.access(parent, os.W_OK | os.X_OK):
-        raise argparse.ArgumentTypeError(f"{what} {path}: no permission to write in {parent}")
+def _checked(check, value: str) -> str:
+    try:
+        check(value)
+    except OutputPathError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+    return value
 
 
 def output_folder(value: str) -> str:
-    """A folder to write into: missing (created later) or an existing, writable folder;
-    never an existing file. Returns ``value`` unchanged (commands record it as given)."""
-    path = Path(value)
-    if not value:
-        raise argparse.ArgumentTypeError("output folder: empty path")
-    if path.exists():
-        if not path.is_dir():
-            raise argparse.ArgumentTypeError(f"output folder {path} is an existing file")
-        if not os.access(path, os.W_OK | os.X_OK):
-            raise argparse.ArgumentTypeError(f"output folder {path}: no permission to write in it")
-    else:
-        _writable_parent(path, "output folder")
-    return value
+    """:func:`~tactile_slam.pipeline.outputs.check_output_folder`; returns ``value`` unchanged
+    (commands record it as given)."""
+    return _checked(check_output_folder, value)
 
 
 def output_file(value: str) -> str:
-    """A file to write: missing or an existing file (replaced), in a folder that exists or
-    can be created; never an existing folder. Returns ``value`` unchanged."""
-    path = Path(value)
-    if not value:
-        raise argparse.ArgumentTypeError("output file: empty path")
-    if path.is_dir():
-        raise argparse.ArgumentTypeError(f"output file {path} is an existing folder")
-    if path.exists() and not os.access(path, os.W_OK):
-        raise argparse.ArgumentTypeError(f"output file {path}: no permission to write it")
-    _writable_parent(path, "output file")
-    return value
+    """:func:`~tactile_slam.pipeline.outputs.check_output_file`; returns ``value`` unchanged."""
+    return _checked(check_output_file, value)
 
 
 def output_file_or_stdout(value: str) -> str:

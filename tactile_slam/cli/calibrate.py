@@ -116,7 +116,8 @@ def register(sub) -> None:
     tp.add_argument("calib_dir")
     tp.add_argument("--out", type=output_folder, help="output folder (default: CALIB_DIR/model)")
     tp.add_argument("--labels", help="labels CSV whose rows override detection")
-    tp.add_argument("--hidden", type=positive_int_list, default=(32, 32, 32), help="hidden layer sizes, comma-separated")
+    tp.add_argument("--hidden", type=positive_int_list, default=(32, 32, 32),
+                    help="hidden layer sizes, comma-separated")
     tp.add_argument("--epochs", type=int, default=TrainConfig.epochs)
     tp.add_argument("--batch-size", type=int, default=TrainConfig.batch_size)
     tp.add_argument("--lr", type=float, default=TrainConfig.lr)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
 
+import numpy as np
 import torch
 
 from tactile_slam.calibration.model import GradientDecoder
@@ -355,11 +356,27 @@ def crop_to_contact(frame: Frame, margin: int = 8) -> CroppedFrame:
     return CroppedFrame(box=box, top=r0, left=c0, full_shape=tuple(frame.shape))
 
 
+def as_tensor(x, what: str) -> torch.Tensor:
+    """A torch tensor, or a numpy array (e.g. an OpenCV image) as one without a copy where
+    its layout allows; anything else is an :class:`InputError` naming ``what``."""
+    if isinstance(x, torch.Tensor):
+        return x
+    if isinstance(x, np.ndarray):
+        return torch.from_numpy(np.ascontiguousarray(x))
+    raise InputError(f"{what} must be a torch tensor or a numpy array, got {type(x).__name__}")
+
+
+def _batch_hint(x: torch.Tensor, item: tuple[int, ...]) -> str:
+    """A hint when ``x`` is one item without its batch axis."""
+    return "; for one frame add a batch axis (x[None])" if tuple(x.shape) == item else ""
+
+
 def check_images(bgr: torch.Tensor, shape: tuple[int, int]) -> None:
     """Raise :class:`InputError` unless ``bgr`` is ``(B, H, W, 3)`` finite."""
     h, w = shape
     if bgr.ndim != 4 or tuple(bgr.shape[1:]) != (h, w, 3):
-        raise InputError(f"expected BGR images of shape (B, {h}, {w}, 3), got {tuple(bgr.shape)}")
+        raise InputError(f"expected BGR images of shape (B, {h}, {w}, 3), got {tuple(bgr.shape)}"
+                         + _batch_hint(bgr, (h, w, 3)))
     if bgr.shape[0] == 0:
         raise InputError("empty image batch")
     if bgr.is_floating_point() and not torch.isfinite(bgr).all():
@@ -369,7 +386,8 @@ def check_images(bgr: torch.Tensor, shape: tuple[int, int]) -> None:
 def check_gradients(gradients: torch.Tensor, shape: tuple[int, int] | None = None) -> None:
     """Raise :class:`InputError` unless ``gradients`` is ``(B, H, W, 2)`` finite."""
     if gradients.ndim != 4 or gradients.shape[-1] != 2:
-        raise InputError(f"expected gradients of shape (B, H, W, 2), got {tuple(gradients.shape)}")
+        raise InputError(f"expected gradients of shape (B, H, W, 2), got {tuple(gradients.shape)}"
+                         + (_batch_hint(gradients, (*shape, 2)) if shape is not None else ""))
     if shape is not None and tuple(gradients.shape[1:3]) != tuple(shape):
         raise InputError(f"expected gradient maps of size {shape}, got {tuple(gradients.shape[1:3])}")
     if gradients.shape[0] == 0:
@@ -406,10 +424,12 @@ class FrameBuilder:
         index: torch.Tensor | None = None,
         timestamp: torch.Tensor | None = None,
     ) -> Frame:
-        """``(B, H, W, 3)`` uint8/float BGR -> :class:`Frame`."""
+        """``(B, H, W, 3)`` uint8/float BGR (a tensor, or a numpy array such as OpenCV's
+        frames) -> :class:`Frame`."""
         if self.decoder is None:
             raise InputError("FrameBuilder.from_bgr needs a calibration model and background")
         cfg = self.config
+        bgr = as_tensor(bgr, "BGR images")
         check_images(bgr, cfg.sensor.shape)
         bgr = bgr.to(self.decoder.device)
         dist = colour_distance(bgr, self.decoder.background)
@@ -429,8 +449,10 @@ class FrameBuilder:
         timestamp: torch.Tensor | None = None,
     ) -> Frame:
         """``(B, H, W, 2)`` gradients (+ optional ``(B, H, W)`` contact masks, used
-        as the final eroded mask as-is) -> :class:`Frame`. Without masks the contact
-        comes from the height rule alone."""
+        as the final eroded mask as-is) -> :class:`Frame`; tensors or numpy arrays.
+        Without masks the contact comes from the height rule alone."""
+        gradients = as_tensor(gradients, "gradients")
+        contact = None if contact is None else as_tensor(contact, "contact masks")
         check_gradients(gradients, self.config.sensor.shape)
         if contact is not None and tuple(contact.shape) != tuple(gradients.shape[:3]):
             raise InputError(

@@ -25,7 +25,7 @@ from tactile_slam.io.dataset import FrameBatch, iter_batches
 from tactile_slam.io.frames import FrameSource
 from tactile_slam.io.scan import check_background, mean_background
 from tactile_slam.pipeline.odometry import OdometryMap
-from tactile_slam.pipeline.outputs import frame_poses, main_group, main_group_poses, write_json
+from tactile_slam.pipeline.outputs import check_output_folder, frame_poses, main_group, main_group_poses, write_json
 from tactile_slam.pipeline.visualizer import NullVisualizer
 from tactile_slam.recon import ReconError, TriMesh, reconstruct
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
@@ -92,7 +92,8 @@ class OfflinePipeline:
     """Args:
         source: frames (a recording or a stream).
         config: settings; written back resolved to ``config.yaml``.
-        out_dir: output folder (created when the first result is written).
+        out_dir: output folder (checked here, before any work; created when the first
+            result is written).
         options: method, device, batching.
         visualizer: receives frames and keyframes; :class:`NullVisualizer` by default.
     """
@@ -101,7 +102,7 @@ class OfflinePipeline:
                  options: RunOptions | None = None, visualizer: NullVisualizer | None = None):
         self.source = source
         self.config = config
-        self.out_dir = Path(out_dir)
+        self.out_dir = check_output_folder(out_dir)
         self.options = options or RunOptions()
         if self.options.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}, got {self.options.method!r}")

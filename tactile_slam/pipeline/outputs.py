@@ -11,11 +11,16 @@ Output folder (stable names; see ``docs/outputs.md``):
 * ``trajectory_tum.txt``: the rows of ``poses.npy`` with a pose, TUM format
   (timestamp from the frame rate, translation in metres, quaternion x y z w).
 * ``keyframes.json``, ``stats.json``, ``config.yaml``.
+
+Output locations are checked before any work (:func:`check_output_folder`,
+:func:`check_output_file`): a run must not compute for minutes and then find that its
+results have nowhere to go. Nothing is created by the checks.
 """
 
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -84,3 +89,49 @@ def main_group_poses(poses_by_group: np.ndarray, frame_group: np.ndarray) -> np.
 
 def write_json(path: Path, data: Any) -> None:
     path.write_text(json.dumps(data, indent=2))
+
+
+class OutputPathError(ValueError):
+    """An output folder or file that cannot be written."""
+
+
+def _writable_parent(path: Path, what: str) -> None:
+    """The nearest existing ancestor of ``path`` must be a folder this process can create
+    entries in (the missing folders between are created later)."""
+    parent = path.absolute().parent
+    while not parent.exists():
+        parent = parent.parent
+    if not parent.is_dir():
+        raise OutputPathError(f"{what} {path}: {parent} is a file, not a folder")
+    if not os.access(parent, os.W_OK | os.X_OK):
+        raise OutputPathError(f"{what} {path}: no permission to write in {parent}")
+
+
+def check_output_folder(path: str | Path) -> Path:
+    """A folder to write into: missing (created later) or an existing, writable folder;
+    never an existing file. Returns it as a :class:`Path`."""
+    if str(path) == "":
+        raise OutputPathError("output folder: empty path")
+    path = Path(path)
+    if path.exists():
+        if not path.is_dir():
+            raise OutputPathError(f"output folder {path} is an existing file")
+        if not os.access(path, os.W_OK | os.X_OK):
+            raise OutputPathError(f"output folder {path}: no permission to write in it")
+    else:
+        _writable_parent(path, "output folder")
+    return path
+
+
+def check_output_file(path: str | Path) -> Path:
+    """A file to write: missing or an existing file (replaced), in a folder that exists or
+    can be created; never an existing folder. Returns it as a :class:`Path`."""
+    if str(path) == "":
+        raise OutputPathError("output file: empty path")
+    path = Path(path)
+    if path.is_dir():
+        raise OutputPathError(f"output file {path} is an existing folder")
+    if path.exists() and not os.access(path, os.W_OK):
+        raise OutputPathError(f"output file {path}: no permission to write it")
+    _writable_parent(path, "output file")
+    return path

@@ -92,6 +92,22 @@ class TestFromGradients:
         with pytest.raises(InputError, match="contact masks"):
             FrameBuilder(Config()).from_gradients(torch.zeros(1, 240, 320, 2), contact=torch.zeros(1, 10, 10))
 
+    def test_numpy_inputs_equal_tensors(self):
+        """numpy gradients and masks (e.g. read with np.load) give the tensors' frame."""
+        fb = FrameBuilder(Config())
+        g = central_gradients(spherical_cap()).float()
+        contact = fb.from_gradients(g).contact
+        ref = fb.from_gradients(g, contact)
+        arr = fb.from_gradients(g.numpy(), contact.numpy())
+        assert torch.equal(arr.height, ref.height) and torch.equal(arr.contact, ref.contact)
+        assert torch.equal(fb.from_gradients(g.numpy()).height, fb.from_gradients(g).height)
+
+    @pytest.mark.parametrize("bad, match", [([[0.0]], "gradients must be a torch tensor or a numpy array, got list"),
+                                            (np.zeros((240, 320, 2)), r"add a batch axis \(x\[None\]\)")])
+    def test_bad_gradient_types(self, bad, match):
+        with pytest.raises(InputError, match=match):
+            FrameBuilder(Config()).from_gradients(bad)
+
 
 @pytest.fixture(scope="module")
 def real(mini_data):
@@ -161,6 +177,16 @@ class TestRealPresses:
     def test_bad_images(self, real, bad, match):
         with pytest.raises(InputError, match=match):
             real[1].from_bgr(bad)
+
+    def test_numpy_images_equal_tensors(self, real):
+        """OpenCV frames (numpy uint8, not contiguous after a channel flip) are taken as is."""
+        root, fb, cat = real
+        img = presses.load_press(root, cat[2][0])[None]
+        flipped = np.ascontiguousarray(img.numpy()[..., ::-1])[..., ::-1]  # a non-contiguous view, same pixels
+        assert not flipped.flags.c_contiguous
+        torch.testing.assert_close(fb.from_bgr(flipped).gradients, fb.from_bgr(img).gradients, rtol=0, atol=0)
+        with pytest.raises(InputError, match="add a batch axis"):
+            fb.from_bgr(img[0].numpy())
 
     def test_from_bgr_needs_decoder(self):
         with pytest.raises(InputError, match="calibration model"):
