@@ -17,6 +17,7 @@ gets the right values without extra keys.
 from __future__ import annotations
 
 import dataclasses
+import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -495,7 +496,7 @@ def _update(obj: Any, values: dict[str, Any], section: str) -> Any:
 def _typed(value: Any, hint: Any, where: str) -> Any:
     """``value`` checked against a field's annotation (``bool``, ``int``, ``float``,
     ``str``, ``X | None``, ``tuple[int, ...]``); ints are accepted for floats and lists
-    for tuples. Raises :class:`ConfigError` naming the key otherwise."""
+    for tuples; floats must be finite. Raises :class:`ConfigError` naming the key otherwise."""
     args = typing.get_args(hint)
     if type(None) in args:
         if value is None:
@@ -511,6 +512,8 @@ def _typed(value: Any, hint: Any, where: str) -> Any:
     if hint is int and isinstance(value, int) and not isinstance(value, bool):
         return value
     if hint is float and isinstance(value, (int, float)) and not isinstance(value, bool):
+        if not math.isfinite(value):  # YAML's .nan / .inf: no setting means "unbounded" that way
+            raise ConfigError(f"{where} must be a finite number, got {value!r}")
         return float(value)
     if hint is str and isinstance(value, str):
         return value

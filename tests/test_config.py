@@ -91,6 +91,10 @@ def test_own_layout_roundtrip(tmp_path):
         ("normalflow: {max_iters: 0}", r"normalflow.max_iters, min_iters and coarse_max_iters must be >= 1"),
         ("normalflow: {jacobian: numeric}", r"normalflow.jacobian must be one of"),
         ("normalflow: {fallback_factors: [1]}", r"normalflow.fallback_factors must be >= 2"),
+        # YAML's .nan and .inf pass a float annotation; a NaN threshold made every test false
+        ("normalflow: {ccs_threshold: .nan}", r"normalflow.ccs_threshold must be a finite number, got nan"),
+        ("tracking: {max_deg_per_s: .inf}", r"tracking.max_deg_per_s must be a finite number, got inf"),
+        ("posegraph: {sigma_trans_m: -.inf}", r"posegraph.sigma_trans_m must be a finite number"),
     ],
 )
 def test_bad_configs(tmp_path, text, match):
