@@ -478,6 +478,58 @@ class Config:
         if self.curvature.blur_ksize % 2 != 1:
             raise ConfigError("curvature.blur_ksize must be odd")
         self.normalflow.check()  # the factors are checked against the frames' size when they register
+        for key, rule, text in _RANGES:
+            section, name = key.split(".")
+            value = getattr(getattr(self, section), name)
+            if value is not None and not rule(value):
+                raise ConfigError(f"{key} must be {text}, got {value!r}")
+        r = self.recon
+        if r.poisson_max_depth < r.poisson_min_depth:
+            raise ConfigError(f"recon.poisson_max_depth must be >= poisson_min_depth, got {r.poisson_max_depth} < "
+                              f"{r.poisson_min_depth}")
+
+
+def _rule(low: float | None = None, high: float | None = None, open_low: bool = False,
+          open_high: bool = False) -> tuple:
+    """A range test and its wording for :data:`_RANGES`."""
+    def ok(v) -> bool:
+        return ((low is None or (v > low if open_low else v >= low))
+                and (high is None or (v < high if open_high else v <= high)))
+    if high is None:
+        return ok, f"{'>' if open_low else '>='} {low}"
+    return ok, f"in {'(' if open_low else '['}{low}, {high}{')' if open_high else ']'}"
+
+
+_NON_NEGATIVE, _POSITIVE, _AT_LEAST_ONE, _UNIT = _rule(0), _rule(0, open_low=True), _rule(1), _rule(0, 1)
+_RANGES = tuple((key, *rule) for key, rule in (
+    ("contact.color_dist_threshold", _NON_NEGATIVE), ("contact.dilate", _NON_NEGATIVE),
+    ("contact.erode", _NON_NEGATIVE), ("contact.height_threshold_mm", _NON_NEGATIVE),
+    ("contact.height_percentile", _rule(0, 100)), ("contact.final_erode", _NON_NEGATIVE),
+    ("contact.min_contact_mm2", _NON_NEGATIVE), ("contact.mlp_skip_color_dist", _NON_NEGATIVE),
+    ("curvature.blur_ksize", _AT_LEAST_ONE), ("curvature.blur_sigma", _POSITIVE), ("curvature.clip", _POSITIVE),
+    ("normalflow.n_samples", _AT_LEAST_ONE), ("normalflow.min_shared", _AT_LEAST_ONE),
+    ("normalflow.ccs_threshold", _UNIT), ("normalflow.scr_threshold", _UNIT),
+    ("normalflow.rot_tol", _NON_NEGATIVE), ("normalflow.trans_tol_m", _NON_NEGATIVE),
+    ("normalflow.degenerate_eig", _NON_NEGATIVE),
+    ("tracking.ccs_threshold", _UNIT), ("tracking.scr_threshold", _UNIT),
+    ("loop.ccs_threshold", _UNIT), ("loop.scr_threshold", _UNIT), ("loop.ransac_iterations", _AT_LEAST_ONE),
+    ("loop.ransac_threshold_px", _POSITIVE), ("loop.ransac_confidence", _rule(0, 1, True, True)),
+    ("loop.coverage_overlap_mm2", _NON_NEGATIVE),
+    ("posegraph.max_iters", _AT_LEAST_ONE), ("posegraph.rel_tol", _NON_NEGATIVE),
+    ("posegraph.abs_tol", _NON_NEGATIVE), ("posegraph.lambda_init", _POSITIVE),
+    ("posegraph.lambda_factor", _rule(1, open_low=True)), ("posegraph.lambda_max", _POSITIVE),
+    ("posegraph.robust_chi2", _POSITIVE), ("posegraph.gnc_mu_step", _rule(1, open_low=True)),
+    ("posegraph.gnc_max_iters", _AT_LEAST_ONE), ("posegraph.incremental_window", _AT_LEAST_ONE),
+    ("posegraph.incremental_tol", _NON_NEGATIVE), ("posegraph.incremental_max_iters", _AT_LEAST_ONE),
+    ("recon.fusion_gate_mm", _POSITIVE), ("recon.voxel_mm", _POSITIVE), ("recon.poisson_cell_mm", _POSITIVE),
+    ("recon.poisson_min_depth", _rule(1, 16)), ("recon.poisson_max_depth", _rule(1, 16)),
+    ("recon.poisson_max_points", _AT_LEAST_ONE), ("recon.trim_density_quantile", _rule(0, 1, open_high=True)),
+    ("recon.trim_distance_mm", _NON_NEGATIVE), ("recon.min_weight", _rule(0, 1, open_high=True)),
+))
+"""Ranges checked at load (:meth:`Config.validate`), ``None`` values exempt: settings no
+constructor checks before the frames are read (the tracker's and the loop detector's
+own checks run when a pipeline is built; these would otherwise fail late, e.g. meshing
+after the whole run, or not at all)."""
 
 
 def _update(obj: Any, values: dict[str, Any], section: str) -> Any:

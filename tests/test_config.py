@@ -1,6 +1,7 @@
 import pytest
 
 from tactile_slam.config import Config, ConfigError, digit, gelsight_mini, load_config
+from tactile_slam.pipeline.offline import OfflinePipeline
 
 GELSLAM_YAML = """
 device_config:
@@ -95,6 +96,18 @@ def test_own_layout_roundtrip(tmp_path):
         ("normalflow: {ccs_threshold: .nan}", r"normalflow.ccs_threshold must be a finite number, got nan"),
         ("tracking: {max_deg_per_s: .inf}", r"tracking.max_deg_per_s must be a finite number, got inf"),
         ("posegraph: {sigma_trans_m: -.inf}", r"posegraph.sigma_trans_m must be a finite number"),
+        # ranges of settings used late (meshing after the run) or never checked before
+        ("tracking: {ccs_threshold: 2}", r"tracking.ccs_threshold must be in \[0, 1\], got 2.0"),
+        ("loop: {scr_threshold: -0.1}", r"loop.scr_threshold must be in \[0, 1\]"),
+        ("contact: {erode: -1}", r"contact.erode must be >= 0, got -1"),
+        ("curvature: {blur_sigma: 0}", r"curvature.blur_sigma must be > 0, got 0.0"),
+        ("posegraph: {max_iters: 0}", r"posegraph.max_iters must be >= 1, got 0"),
+        ("posegraph: {lambda_factor: 1}", r"posegraph.lambda_factor must be > 1"),
+        ("recon: {voxel_mm: 0}", r"recon.voxel_mm must be > 0"),
+        ("recon: {trim_density_quantile: 1}", r"recon.trim_density_quantile must be in \[0, 1\)"),
+        ("recon: {poisson_min_depth: 9, poisson_max_depth: 8}",
+         r"recon.poisson_max_depth must be >= poisson_min_depth"),
+        ("loop: {ransac_confidence: 1}", r"loop.ransac_confidence must be in \(0, 1\)"),
     ],
 )
 def test_bad_configs(tmp_path, text, match):
@@ -122,3 +135,17 @@ def test_values_are_typed(tmp_path):
 def test_missing_file(tmp_path):
     with pytest.raises(ConfigError, match="not found"):
         load_config(tmp_path / "nope.yaml")
+
+
+def test_every_preset_and_the_defaults_pass_the_ranges():
+    for name in (None, "gelsight_mini", "digit"):
+        load_config(name).validate()
+
+
+def test_a_pipeline_validates_a_config_built_in_python(tmp_path):
+    """A Config changed in Python skips the YAML loader's checks; the pipeline runs them
+    when it is built, before any frame is read."""
+    cfg = Config()
+    cfg.recon.voxel_mm = -1.0
+    with pytest.raises(ConfigError, match="recon.voxel_mm must be > 0"):
+        OfflinePipeline(iter(()), cfg, tmp_path / "out")

@@ -100,6 +100,7 @@ class OfflinePipeline:
 
     def __init__(self, source: FrameSource, config: Config, out_dir: str | Path,
                  options: RunOptions | None = None, visualizer: NullVisualizer | None = None):
+        config.validate()  # a Config changed in Python skips the YAML loader's checks
         self.source = source
         self.config = config
         self.out_dir = check_output_folder(out_dir)
