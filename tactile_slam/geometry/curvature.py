@@ -75,3 +75,47 @@ def curvature(
     lap = blurred.squeeze(1) * as_weights(contact[:, rows, cols], blurred.dtype)
     out[:, rows, cols] = lap.clamp(-clip, clip)
     return out
+
+
+def gaussian_curvature(
+    gradients: torch.Tensor,
+    contact: torch.Tensor,
+    ksize: int = 5,
+    sigma: float = 1.1,
+    clip: float = 0.7,
+) -> torch.Tensor:
+    """Gaussian curvature as a Laplacian-like map: ``2 sign(K) sqrt(|K|)`` with ``K`` the
+    blurred Hessian determinant of the height, ``g_xx g_yy - g_xy^2`` of the slopes (central
+    differences, ``g_xy`` symmetrised; Gaussian blur as :func:`curvature`), zero outside
+    contact, clipped to ``[-clip, clip]``.
+
+    The Laplacian (:func:`curvature`) answers to lines (ribs, growth lines, print layers)
+    as strongly as to bumps. ``K`` vanishes along a line, where one principal curvature is
+    zero, and keeps bumps, pits, saddles, corners and crossings: places a keypoint detector
+    can find again from another touch. ``2 sqrt(|K|)`` is the Laplacian a spherical bump
+    of the same ``K`` has (``kappa_1 = kappa_2``), so the same ``clip`` and 8-bit scale
+    serve both maps. Rotation invariant about the sensor axis, like the Laplacian. Computed
+    in a window around the batch's contact, like :func:`curvature`.
+
+    Args:
+        gradients: ``(B, H, W, 2)``.
+        contact: ``(B, H, W)`` bool.
+
+    Returns:
+        ``(B, H, W)`` in 1/px.
+    """
+    out = torch.zeros(gradients.shape[:3], dtype=gradients.dtype, device=gradients.device)
+    box = mask_bounds(contact.any(0))
+    if box is None:
+        return out
+    r0, r1, c0, c1 = box
+    rows, cols = window_around((r0, r1 - 1, c0, c1 - 1), ksize // 2 + 1, contact.shape[1:])
+    g = gradients[:, rows, cols]
+    gx_y, gx_x = torch.gradient(g[..., 0], dim=(1, 2))
+    gy_y, gy_x = torch.gradient(g[..., 1], dim=(1, 2))
+    det = (gx_x * gy_y - (0.5 * (gx_y + gy_x)) ** 2).unsqueeze(1)
+    kernel = gaussian_kernel(ksize, sigma, det.dtype, str(det.device))
+    blurred = kornia.filters.filter2d_separable(det, kernel, kernel, border_type="reflect").squeeze(1)
+    root = 2.0 * blurred.sign() * blurred.abs().sqrt()
+    out[:, rows, cols] = (root * as_weights(contact[:, rows, cols], root.dtype)).clamp(-clip, clip)
+    return out

@@ -36,7 +36,8 @@ import torch
 
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import CroppedFrame, Frame, window_batch
-from tactile_slam.loop.features import Features, SiftSettings, curvature_features, image_features
+from tactile_slam.loop.features import (Features, SiftSettings, curvature_features, gaussian_curvature_features,
+                                        image_features)
 from tactile_slam.loop.matching import RansacSettings, match, self_similarity, similarity_to_se3
 from tactile_slam.loop.retrieval import DescriptorIndex, Footprint, IndexSettings, footprints, pose_gate
 from tactile_slam.posegraph import se3
@@ -51,6 +52,8 @@ from tactile_slam.registration.result import RegistrationResult
 from tactile_slam.tracking.keyframe import Keyframe
 
 MODES = ("full", "only_sift", "only_nf", "image_sift")
+FEATURE_MAPS = ("laplacian", "gaussian")
+"""``loop.feature_map`` values: the curvature map SIFT runs on."""
 
 
 class LoopError(ValueError):
@@ -166,6 +169,8 @@ class LoopDetector:
             raise LoopError("loop.min_sift_inliers must be >= 3, max_candidates and verify_batch >= 1")
         if not lc.sift_edge_threshold > 0:
             raise LoopError(f"loop.sift_edge_threshold must be > 0, got {lc.sift_edge_threshold}")
+        if lc.feature_map not in FEATURE_MAPS:
+            raise LoopError(f"loop.feature_map must be one of {FEATURE_MAPS}, got {lc.feature_map!r}")
         self.sift = SiftSettings(lc.sift_backend, lc.sift_contrast_threshold, lc.sift_octave_layers,
                                  lc.sift_max_features, config.final_erode_px, lc.sift_edge_threshold)
         self.ransac = RansacSettings(lc.min_sift_inliers, lc.ransac_iterations, lc.ransac_threshold_px,
@@ -195,13 +200,18 @@ class LoopDetector:
         return self._features[kf_id]
 
     def extract(self, keyframe: Keyframe) -> Features:
-        """Features of a keyframe for this mode (curvature SIFT, or image SIFT)."""
+        """Features of a keyframe for this mode: SIFT on its curvature map
+        (``loop.feature_map``: the Laplacian or the Gaussian curvature), or on its image."""
         frame = _check_keyframe(keyframe)
         t0 = time.perf_counter()
         if self.mode == "image_sift":
             if keyframe.image is None:
                 raise LoopError(f"mode 'image_sift' needs keyframe images; keyframe {keyframe.id} has none")
             feats = image_features(keyframe.image, frame.contact[0].cpu(), self.sift)
+        elif self.config.loop.feature_map == "gaussian":
+            cc = self.config.curvature
+            feats = gaussian_curvature_features(frame.normals[0].cpu(), frame.contact[0].cpu(), cc.blur_ksize,
+                                                cc.blur_sigma, cc.clip, self.sift)
         else:
             feats = curvature_features(frame.curvature[0].cpu(), frame.contact[0].cpu(),
                                        self.config.curvature.clip, self.sift)

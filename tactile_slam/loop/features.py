@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 import torch
 
+from tactile_slam.geometry.curvature import gaussian_curvature
 from tactile_slam.geometry.morphology import erode, mask_bounds
 
 BACKENDS = ("opencv", "kornia")
@@ -208,6 +209,20 @@ def curvature_features(curvature: torch.Tensor, contact: torch.Tensor, clip: flo
     if not bool(torch.isfinite(curvature).all()):
         raise FeatureError("curvature map contains NaN or Inf")
     return detect(curvature_image(curvature, clip), contact, settings)
+
+
+def gaussian_curvature_features(normals: torch.Tensor, contact: torch.Tensor, ksize: int, sigma: float,
+                                clip: float, settings: SiftSettings | None = None) -> Features:
+    """SIFT on the 8-bit image (:func:`curvature_image`) of the keyframe's Gaussian
+    curvature (:func:`~tactile_slam.geometry.curvature.gaussian_curvature`; ``loop.feature_map:
+    gaussian``), from its unit normals ``(H, W, 3)`` and eroded contact ``(H, W)``."""
+    if normals.ndim != 3 or normals.shape[-1] != 3:
+        raise FeatureError(f"expected a single (H, W, 3) normal map, got shape {tuple(normals.shape)}")
+    if not bool(torch.isfinite(normals).all()):
+        raise FeatureError("normal map contains NaN or Inf")
+    gradients = -normals[..., :2] / normals[..., 2:].clamp_min(1e-6)
+    k = gaussian_curvature(gradients[None], contact[None], ksize, sigma, clip)[0]
+    return detect(curvature_image(k, clip), contact, settings)
 
 
 def image_features(bgr: torch.Tensor, contact: torch.Tensor, settings: SiftSettings | None = None) -> Features:

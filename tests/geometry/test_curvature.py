@@ -1,11 +1,13 @@
+import math
+
 import kornia
 import numpy as np
 import pytest
 import torch
 
-from tactile_slam.geometry.curvature import curvature, divergence, normals_from_gradients
+from tactile_slam.geometry.curvature import curvature, divergence, gaussian_curvature, normals_from_gradients
 
-from .surfaces import central_gradients, grid
+from .surfaces import central_gradients, gaussian_dent, grid, sinusoid
 
 
 def test_normals_unit_and_direction():
@@ -93,3 +95,59 @@ def test_curvature_window_equals_full_image(ksize, dtype, device):
         assert (got[~m[i:i + 1]] == 0).all()
     torch.testing.assert_close(curvature(g, m, ksize), want, rtol=0, atol=tol)
     assert (curvature(g, torch.zeros_like(m), ksize) == 0).all()
+
+
+class TestGaussianCurvature:
+    """``2 sign(K) sqrt(|K|)`` of the blurred Hessian determinant (the loop features' other map)."""
+
+    def test_paraboloid_equals_the_laplacian(self, dtype):
+        """A bump with equal principal curvatures: the map is its Laplacian (the scale
+        both maps share)."""
+        r, c = grid(dtype)
+        g = central_gradients(0.01 * (r**2 + c**2))  # h_xx = h_yy = 0.02, Laplacian 0.04
+        m = torch.ones(1, 240, 320, dtype=torch.bool)
+        inner = (slice(None), slice(5, -5), slice(5, -5))
+        torch.testing.assert_close(gaussian_curvature(g, m)[inner], curvature(g, m)[inner])
+        torch.testing.assert_close(gaussian_curvature(g, m)[inner], torch.full((1, 230, 310), 0.04, dtype=dtype))
+
+    def test_a_line_vanishes_and_a_saddle_does_not(self):
+        """Ridges (one principal curvature zero) leave no trace, unlike in the Laplacian; a
+        saddle, which the Laplacian does not see, is negative."""
+        r, c = grid()
+        m = torch.ones(1, 240, 320, dtype=torch.bool)
+        inner = (slice(None), slice(5, -5), slice(5, -5))
+        ridges = central_gradients(3.0 * torch.sin(2 * math.pi * c / 40.0))
+        assert gaussian_curvature(ridges, m)[inner].abs().max() < 1e-12
+        assert curvature(ridges, m)[inner].abs().max() > 0.05
+        saddle = central_gradients(0.01 * (c**2 - r**2))  # h_xx = -h_yy = 0.02, K = -4e-4
+        torch.testing.assert_close(gaussian_curvature(saddle, m)[inner], torch.full((1, 230, 310), -0.04,
+                                                                                     dtype=torch.float64))
+        assert curvature(saddle, m)[inner].abs().max() < 1e-12
+
+    def test_rotation_invariant(self):
+        """A quarter turn of the surface turns the map with it (the slopes turn as vectors)."""
+        h = gaussian_dent() + sinusoid(amp=1.0)
+        m = torch.ones(1, 240, 240, dtype=torch.bool)
+        h = h[:, 40:280]  # square, so a quarter turn keeps the size
+        turned = torch.rot90(h, 1, (0, 1))
+        a = gaussian_curvature(central_gradients(h), m, clip=10.0)
+        b = gaussian_curvature(central_gradients(turned), m, clip=10.0)
+        inner = (slice(None), slice(5, -5), slice(5, -5))
+        torch.testing.assert_close(torch.rot90(a, 1, (1, 2))[inner], b[inner], rtol=0, atol=1e-12)
+
+    @pytest.mark.parametrize("ksize", [3, 5])
+    def test_window_equals_full_image(self, ksize, dtype, device):
+        """Computed in a window around the contact, every pixel is the full-image result
+        masked (rounding of a convolution over another size), and zero outside contact."""
+        g = torch.randn(3, 40, 56, 2, generator=torch.Generator().manual_seed(ksize), dtype=dtype).to(device) * 0.3
+        m = torch.zeros(3, 40, 56, dtype=torch.bool, device=device)
+        m[0, 12:20, 20:31] = True
+        m[1, 0:6, 40:56] = True
+        full = gaussian_curvature(g, torch.ones_like(m), ksize, clip=100.0)
+        want = torch.where(m, full, torch.zeros_like(full)).clamp(-0.7, 0.7)
+        tol = 1e-10 if dtype == torch.float64 else 1e-5
+        for i in range(3):
+            got = gaussian_curvature(g[i:i + 1], m[i:i + 1], ksize)
+            torch.testing.assert_close(got, want[i:i + 1], rtol=0, atol=tol)
+            assert (got[~m[i:i + 1]] == 0).all()
+        assert gaussian_curvature(g, m, ksize).shape == (3, 40, 56)

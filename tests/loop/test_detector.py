@@ -48,8 +48,11 @@ def _loop_error(loop: Loop, tar_T_ref: torch.Tensor):
     return float(rot), float(trans)
 
 
-def test_finds_true_loop_with_ground_truth_pose(scene):
-    det = _detector(scene)
+@pytest.mark.parametrize("feature_map", ["laplacian", "gaussian"])
+def test_finds_true_loop_with_ground_truth_pose(scene, feature_map):
+    config = Config()
+    config.loop.feature_map = feature_map
+    det = _detector(scene, config)
     loops = det.detect(scene[2], [0, 1, 3], {}, {}, scene)
     by_ref = {lp.ref_id: lp for lp in loops}
     assert 0 in by_ref and 3 not in by_ref
@@ -228,6 +231,10 @@ def test_image_sift_needs_images(scene):
 def test_bad_configuration_and_input(scene):
     with pytest.raises(LoopError, match="mode"):
         LoopDetector(Config(), mode="fast")
+    config = Config()
+    config.loop.feature_map = "hessian"
+    with pytest.raises(LoopError, match="loop.feature_map must be one of"):
+        LoopDetector(config)
     det = _detector(scene, ids=(0,))
     with pytest.raises(LoopError, match="keyframe 1 was never added"):
         det.detect(scene[2], [1, 0], {}, {}, scene)

@@ -3,14 +3,18 @@ exact shift equivariance of the crop logic, the 8-bit mapping, bad input."""
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
 
+from tactile_slam.geometry.curvature import curvature, normals_from_gradients
 from tactile_slam.geometry.morphology import mask_bounds
 from tactile_slam.geometry.morphology import erode
 from tactile_slam.loop.features import (
-    FeatureError, Features, SiftSettings, curvature_features, curvature_image, detect, image_features,
+    FeatureError, Features, SiftSettings, curvature_features, curvature_image, detect, gaussian_curvature_features,
+    image_features,
 )
 from tests.registration.surfaces import Surface, frames, textured
 
@@ -143,3 +147,34 @@ def test_edge_threshold_admits_keypoints_on_lines():
     on_ridge = np.minimum(np.abs(y - 120 - 0.3 * (x - 160)) / np.hypot(1.0, 0.3),
                           np.abs(x - 100 + 0.2 * y) / np.hypot(1.0, 0.2))
     assert (on_ridge < 8.0).all()  # DoG extrema sit on a ridge or its flanks
+
+
+class TestGaussianCurvatureFeatures:
+    """SIFT on the Gaussian-curvature map (``loop.feature_map: gaussian``)."""
+
+    def test_smoke_and_inside_contact(self, textured_frame):
+        contact = textured_frame.contact[0]
+        f = gaussian_curvature_features(textured_frame.normals[0], contact, 5, 1.1, CLIP)
+        assert len(f) >= 8 and f.descriptors.shape == (len(f), 128)
+        inner = erode(contact[None], 5, border_is_contact=False)[0]
+        assert bool(inner[f.keypoints[:, 1].round().long(), f.keypoints[:, 0].round().long()].all())
+
+    def test_ridges_give_the_laplacian_keypoints_and_this_map_none(self):
+        """Straight parallel ridges in a disc of contact (a ribbed face): SIFT on the
+        Laplacian finds keypoints along them, which no other touch can place (a shift
+        along a ridge looks the same); on the Gaussian curvature the ridges vanish."""
+        r, c = torch.meshgrid(torch.arange(240.0), torch.arange(320.0), indexing="ij")
+        h = 2.0 * torch.sin(2 * math.pi * (c * math.cos(0.4) + r * math.sin(0.4)) / 13.0)  # px
+        gy, gx = torch.gradient(h, dim=(0, 1))
+        g = torch.stack([gx, gy], -1)[None]
+        contact = ((r - 120) ** 2 + (c - 160) ** 2 < 90**2)[None]
+        lap = curvature_features(curvature(g, contact)[0], contact[0], CLIP)
+        gauss = gaussian_curvature_features(normals_from_gradients(g)[0], contact[0], 5, 1.1, CLIP)
+        assert len(lap) >= 8 and len(gauss) == 0
+
+    def test_exceptions(self, textured_frame):
+        n, contact = textured_frame.normals[0], textured_frame.contact[0]
+        with pytest.raises(FeatureError, match="NaN"):
+            gaussian_curvature_features(torch.full_like(n, float("nan")), contact, 5, 1.1, CLIP)
+        with pytest.raises(FeatureError, match="single"):
+            gaussian_curvature_features(n[None], contact, 5, 1.1, CLIP)
