@@ -63,17 +63,26 @@ def curvature(
     Returns:
         ``(B, H, W)`` in 1/px.
     """
+    return _blurred_in_contact(divergence, None, gradients, contact, ksize, sigma, clip)
+
+
+def _blurred_in_contact(field, finish, gradients: torch.Tensor, contact: torch.Tensor, ksize: int, sigma: float,
+                        clip: float) -> torch.Tensor:
+    """``finish(blur(field(gradients)))`` (``finish`` None: the blurred field), zero outside
+    contact and clipped, computed in the window around the batch's contact that every
+    contact pixel's full-image value reads (``ksize // 2 + 1`` pixels: the blur's reach
+    plus a central difference's). ``field``: ``(b, h, w, 2)`` -> ``(b, h, w)``."""
     out = torch.zeros(gradients.shape[:3], dtype=gradients.dtype, device=gradients.device)
     box = mask_bounds(contact.any(0))  # of every frame's contact
     if box is None:
         return out
     r0, r1, c0, c1 = box
     rows, cols = window_around((r0, r1 - 1, c0, c1 - 1), ksize // 2 + 1, contact.shape[1:])
-    div = divergence(gradients[:, rows, cols]).unsqueeze(1)
-    kernel = gaussian_kernel(ksize, sigma, div.dtype, str(div.device))
-    blurred = kornia.filters.filter2d_separable(div, kernel, kernel, border_type="reflect")
-    lap = blurred.squeeze(1) * as_weights(contact[:, rows, cols], blurred.dtype)
-    out[:, rows, cols] = lap.clamp(-clip, clip)
+    raw = field(gradients[:, rows, cols]).unsqueeze(1)
+    kernel = gaussian_kernel(ksize, sigma, raw.dtype, str(raw.device))
+    blurred = kornia.filters.filter2d_separable(raw, kernel, kernel, border_type="reflect").squeeze(1)
+    value = blurred if finish is None else finish(blurred)
+    out[:, rows, cols] = (value * as_weights(contact[:, rows, cols], value.dtype)).clamp(-clip, clip)
     return out
 
 
@@ -104,18 +113,13 @@ def gaussian_curvature(
     Returns:
         ``(B, H, W)`` in 1/px.
     """
-    out = torch.zeros(gradients.shape[:3], dtype=gradients.dtype, device=gradients.device)
-    box = mask_bounds(contact.any(0))
-    if box is None:
-        return out
-    r0, r1, c0, c1 = box
-    rows, cols = window_around((r0, r1 - 1, c0, c1 - 1), ksize // 2 + 1, contact.shape[1:])
-    g = gradients[:, rows, cols]
-    gx_y, gx_x = torch.gradient(g[..., 0], dim=(1, 2))
-    gy_y, gy_x = torch.gradient(g[..., 1], dim=(1, 2))
-    det = (gx_x * gy_y - (0.5 * (gx_y + gy_x)) ** 2).unsqueeze(1)
-    kernel = gaussian_kernel(ksize, sigma, det.dtype, str(det.device))
-    blurred = kornia.filters.filter2d_separable(det, kernel, kernel, border_type="reflect").squeeze(1)
-    root = 2.0 * blurred.sign() * blurred.abs().sqrt()
-    out[:, rows, cols] = (root * as_weights(contact[:, rows, cols], root.dtype)).clamp(-clip, clip)
-    return out
+    return _blurred_in_contact(hessian_determinant, lambda k: 2.0 * k.sign() * k.abs().sqrt(), gradients, contact,
+                               ksize, sigma, clip)
+
+
+def hessian_determinant(gradients: torch.Tensor) -> torch.Tensor:
+    """``g_xx g_yy - g_xy^2`` of the slopes by central differences (``g_xy`` the mean of
+    the two mixed derivatives). ``(B, H, W, 2)`` -> ``(B, H, W)``."""
+    gx_y, gx_x = torch.gradient(gradients[..., 0], dim=(-2, -1))
+    gy_y, gy_x = torch.gradient(gradients[..., 1], dim=(-2, -1))
+    return gx_x * gy_y - (0.5 * (gx_y + gy_x)) ** 2
