@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from tactile_slam.geometry.curvature import gaussian_curvature
-from tactile_slam.geometry.morphology import erode, mask_bounds
+from tactile_slam.geometry.morphology import erode, mask_bounds, window_around
 
 BACKENDS = ("opencv", "kornia")
 
@@ -215,13 +215,21 @@ def gaussian_curvature_features(normals: torch.Tensor, contact: torch.Tensor, ks
                                 clip: float, settings: SiftSettings | None = None) -> Features:
     """SIFT on the 8-bit image (:func:`curvature_image`) of the keyframe's Gaussian
     curvature (:func:`~tactile_slam.geometry.curvature.gaussian_curvature`; ``loop.feature_map:
-    gaussian``), from its unit normals ``(H, W, 3)`` and eroded contact ``(H, W)``."""
+    gaussian``), from its unit normals ``(H, W, 3)`` and eroded contact ``(H, W)``. Only the
+    window the contact pixels read is converted to slopes (the full image's values)."""
     if normals.ndim != 3 or normals.shape[-1] != 3:
         raise FeatureError(f"expected a single (H, W, 3) normal map, got shape {tuple(normals.shape)}")
-    if not bool(torch.isfinite(normals).all()):
+    _check_maps(normals[..., 2], contact)
+    box = mask_bounds(contact)
+    if box is None:
+        return Features.empty()
+    rows, cols = window_around((box[0], box[1] - 1, box[2], box[3] - 1), ksize // 2 + 1, tuple(contact.shape))
+    n = normals[rows, cols]
+    if not bool(torch.isfinite(n).all()):
         raise FeatureError("normal map contains NaN or Inf")
-    gradients = -normals[..., :2] / normals[..., 2:].clamp_min(1e-6)
-    k = gaussian_curvature(gradients[None], contact[None], ksize, sigma, clip)[0]
+    slopes = -n[..., :2] / n[..., 2:].clamp_min(1e-6)
+    k = torch.zeros(contact.shape, dtype=slopes.dtype)
+    k[rows, cols] = gaussian_curvature(slopes[None], contact[rows, cols][None], ksize, sigma, clip)[0]
     return detect(curvature_image(k, clip), contact, settings)
 
 
