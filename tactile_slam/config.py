@@ -275,10 +275,12 @@ class LoopConfig:
     sift_octave_layers: int = 3
     sift_max_features: int = 512  # kornia backend only
     sift_edge_threshold: float = 10.0  # opencv backend only: keypoints on lines are dropped above it
-    # the curvature map SIFT runs on: "gaussian" (the Hessian determinant, which keeps bumps
-    # and crossings and drops lines; geometry.curvature) or "laplacian" (method.md 6.2, the
-    # public code's); docs/loops.md, "Features on the Gaussian curvature"
-    feature_map: str = "gaussian"
+    # the curvature map SIFT runs on: "laplacian" (method.md 6.2, the public code's) or
+    # "gaussian" (the Hessian determinant, which keeps bumps and crossings and drops lines;
+    # geometry.curvature): 2-4x the loops between sessions, but not the default yet (it
+    # also verifies imprecise loops within a session); docs/loops.md, "Features on the
+    # Gaussian curvature"
+    feature_map: str = "laplacian"
     ransac_iterations: int = 100
     ransac_threshold_px: float = 3.0
     ransac_confidence: float = 0.99
