@@ -60,7 +60,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--stride", type=positive_int, default=8, help="keyframe every N in-contact frames (paper: 7.7)")
     p.add_argument("--overlap", type=float, default=0.3, help="true-revisit overlap fraction")
     p.add_argument("--modes", nargs="+", default=["full", "only_sift"], help="loop modes to score")
-    p.add_argument("--sizes", nargs="*", type=positive_int, default=[100, 1000], help="map sizes for detect timing (none: skip)")
+    p.add_argument("--sizes", nargs="*", type=positive_int, default=[100, 1000],
+                   help="map sizes for detect timing (none: skip)")
     p.add_argument("--index-sizes", nargs="*", type=positive_int, default=[100, 1000, 5000])
     p.add_argument("--timing-object", default="shell")
     p.add_argument("--queries", type=positive_int, default=30, help="timed queries per map size")
