@@ -72,7 +72,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--objects", nargs="*", default=list(SIZES_MM), choices=sorted(SIZES_MM),
                         help="objects of the accuracy table (none: skip it)")
     parser.add_argument("--sizes", nargs="+", default=["small", "large"], choices=["small", "large"])
-    parser.add_argument("--frames", type=int, default=None,
+    parser.add_argument("--frames", type=positive_int, default=None,
                         help="simulated scan frames per object (default: 1500 small, 3000 large)")
     parser.add_argument("--level", choices=["gradients", "image"], default="gradients",
                         help="simulated input: gradient maps, or video through the calibration model")

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from tactile_slam.cli.arguments import output_folder
+from tactile_slam.cli.arguments import output_folder, positive_int
 from tactile_slam.config import load_config
 from tactile_slam.io.dispatch import open_source
 from tactile_slam.io.frames import FrameSource
@@ -29,7 +29,7 @@ def register(sub) -> None:
     p.add_argument("--out", required=True, type=output_folder, help="scan folder to create")
     p.add_argument("--config", default=None, help="YAML config (ours or GelSLAM's) or a preset name")
     p.add_argument("--seconds", type=float, default=None, help="stop after this many seconds of frames")
-    p.add_argument("--frames", type=int, default=None, help="stop after this many frames")
+    p.add_argument("--frames", type=positive_int, default=None, help="stop after this many frames")
     p.add_argument("--resize", action="store_true", help="resize input frames to the working size")
     p.set_defaults(func=run)
 
