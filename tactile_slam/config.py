@@ -391,6 +391,16 @@ class ReconConfig:
     # also mesh every group besides the main one, each in its own frame (groups/group_<label>/)
     all_groups: bool = False
 
+    def check(self) -> None:
+        """Raise :class:`ConfigError` for the rules no single range states (the ranges are
+        :data:`_RANGES`): the thread count, and the depth bounds' order."""
+        t = self.poisson_threads
+        if isinstance(t, bool) or not isinstance(t, int) or not (t == -1 or t >= 1):
+            raise ConfigError(f"recon.poisson_threads must be -1 (every core) or an integer >= 1, got {t!r}")
+        if self.poisson_max_depth < self.poisson_min_depth:
+            raise ConfigError(f"recon.poisson_max_depth must be >= poisson_min_depth, got {self.poisson_max_depth} "
+                              f"< {self.poisson_min_depth}")
+
 
 @dataclass
 class Config:
@@ -489,10 +499,7 @@ class Config:
             value = getattr(getattr(self, section), name)
             if value is not None and not rule(value):
                 raise ConfigError(f"{key} must be {text}, got {value!r}")
-        r = self.recon
-        if r.poisson_max_depth < r.poisson_min_depth:
-            raise ConfigError(f"recon.poisson_max_depth must be >= poisson_min_depth, got {r.poisson_max_depth} < "
-                              f"{r.poisson_min_depth}")
+        self.recon.check()
 
 
 def _rule(low: float | None = None, high: float | None = None, open_low: bool = False,

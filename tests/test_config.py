@@ -108,6 +108,7 @@ def test_own_layout_roundtrip(tmp_path):
         ("recon: {poisson_min_depth: 9, poisson_max_depth: 8}",
          r"recon.poisson_max_depth must be >= poisson_min_depth"),
         ("loop: {ransac_confidence: 1}", r"loop.ransac_confidence must be in \(0, 1\)"),
+        ("recon: {poisson_threads: 0}", r"recon.poisson_threads must be -1 \(every core\) or an integer >= 1"),
     ],
 )
 def test_bad_configs(tmp_path, text, match):

@@ -38,8 +38,9 @@ def register(sub) -> None:
 
 
 def run(args) -> int:
-    if not args.online and online_only_given(args):
-        raise ValueError(f"{', '.join(online_only_given(args))}: used only with --online (add it, or drop them)")
+    offline_extras = [] if args.online else online_only_given(args)
+    if offline_extras:
+        raise ValueError(f"{', '.join(offline_extras)}: used only with --online (add it, or drop them)")
     if args.threads is not None and not args.online:  # online, OnlinePipeline sets the tracker's
         torch.set_num_threads(args.threads)
     config = load_config(args.config) if args.config else None

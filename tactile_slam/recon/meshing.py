@@ -20,7 +20,7 @@ import open3d as o3d
 import torch
 from scipy.spatial import cKDTree
 
-from tactile_slam.config import ReconConfig
+from tactile_slam.config import ConfigError, ReconConfig
 from tactile_slam.recon.fusion import FusedKeyframe, ReconError
 from tactile_slam.recon.mesh import TriMesh, face_components, is_closed_manifold
 
@@ -214,9 +214,10 @@ def poisson_mesh(
     count = points.shape[0] if isinstance(points, torch.Tensor) else sum(p.shape[0] for p in points)
     if count < 10:
         raise ReconError(f"Poisson meshing needs at least 10 oriented points, got {count}")
-    threads = config.poisson_threads
-    if isinstance(threads, bool) or not isinstance(threads, int) or not (threads == -1 or threads >= 1):
-        raise ReconError(f"recon.poisson_threads must be -1 (every core) or an integer >= 1, got {threads!r}")
+    try:
+        config.check()
+    except ConfigError as exc:
+        raise ReconError(str(exc)) from None
     watertight = config.watertight if watertight is None else watertight
     p_mm, n, voxel = voxel_average(points, normals, config.voxel_mm, config.poisson_max_points, scale=1000.0)
     cell = config.poisson_cell_mm * voxel / config.voxel_mm  # the cell follows a coarsened voxel
@@ -227,7 +228,7 @@ def poisson_mesh(
     pcd.normals = o3d.utility.Vector3dVector(n.cpu().double().numpy())
     with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
         mesh, dens = o3d.geometry.TriangleMesh.create_from_point_cloud_poisson(
-            pcd, depth=depth, scale=1.1, linear_fit=False, n_threads=threads
+            pcd, depth=depth, scale=1.1, linear_fit=False, n_threads=config.poisson_threads
         )
     dens = np.asarray(dens)
     if not watertight:
