@@ -123,6 +123,14 @@ class ContactConfig:
     # Pixels whose colour differs from the background by less than this skip the
     # calibration MLP (their gradient is exactly the background's, i.e. zero).
     mlp_skip_color_dist: float = 8.0
+    # Contact masks given with gradient maps: "final" uses them as the eroded mask as-is
+    # (masks from another pipeline); "region" treats them like the colour mask of an image,
+    # so the depth test and the final erosion above apply inside them (docs/io.md).
+    given_masks: str = "final"
+
+
+GIVEN_MASKS = ("final", "region")
+"""``ContactConfig.given_masks`` values."""
 
 
 @dataclass
@@ -491,6 +499,8 @@ class Config:
             raise ConfigError(f"sensor.fps must be > 0, got {s.fps}")
         if s.background_frames < 1:
             raise ConfigError("sensor.background_frames must be >= 1")
+        if self.contact.given_masks not in GIVEN_MASKS:
+            raise ConfigError(f"contact.given_masks must be one of {GIVEN_MASKS}, got {self.contact.given_masks!r}")
         if self.curvature.blur_ksize % 2 != 1:
             raise ConfigError("curvature.blur_ksize must be odd")
         self.normalflow.check()  # the factors are checked against the frames' size when they register

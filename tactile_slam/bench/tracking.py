@@ -45,7 +45,7 @@ import argparse
 import json
 import tempfile
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +54,7 @@ import torch
 from tactile_slam.bench.common import machine_info, median_per_key, set_threads, write_json
 from tactile_slam.cli.arguments import positive_int
 from tactile_slam.cli.eval import evaluate_run
-from tactile_slam.config import Config
+from tactile_slam.config import Config, load_config
 from tactile_slam.eval.loop_metrics import gt_loop_pairs, loop_precision_recall
 from tactile_slam.eval.tracking_metrics import AXES
 from tactile_slam.geometry.frame import FrameBuilder
@@ -93,6 +93,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--cache", default="outputs/bench_tracking_episodes", help="episode cache folder")
     p.add_argument("--work", default=None, help="run output folder (default: a temporary folder)")
     p.add_argument("--threads", type=positive_int, default=None, help="torch CPU threads")
+    p.add_argument("--config", default=None,
+                   help="YAML config or preset for the runs (default: GelSight Mini); the episodes are simulated "
+                        "with the default sensor")
     p.add_argument("--png", default=None, help="plot path (default: the JSON path with .png)")
     p.add_argument("--append", action="store_true",
                    help="merge this run into the JSON at --out: its tables and episodes replace those of the "
@@ -225,8 +228,9 @@ def loop_scores(run_dir: Path, episode_dir: Path, config: Config) -> dict:
     ref_T_tar = np.array([lp["ref_T_tar"] for lp in loops], dtype=np.float64).reshape(-1, 4, 4)
     cand = np.unique(np.fromiter(video.values(), dtype=np.int64))
     grads, contact = ep.gradients()
-    frames = FrameBuilder(config).from_gradients(torch.from_numpy(grads[cand].astype(np.float32)),
-                                                 torch.from_numpy(contact[cand]))
+    physical = replace(config, contact=replace(config.contact, given_masks="final"))  # truth: the simulator's contact
+    frames = FrameBuilder(physical).from_gradients(torch.from_numpy(grads[cand].astype(np.float32)),
+                                                   torch.from_numpy(contact[cand]))
     h, w = config.sensor.shape
     height = np.zeros((len(ep), h, w), np.float32)
     mask = np.zeros((len(ep), h, w), bool)
@@ -453,7 +457,7 @@ def run(args) -> Path:
     set_threads(args.threads)
     out_path = Path(args.out)
     old = previous_results(out_path) if args.append else None  # checked before any work
-    config = Config()
+    config = load_config(args.config)  # checked before any work
     specs = episode_specs(args)
     cache = Path(args.cache)
     tmp = None if args.work else tempfile.TemporaryDirectory(prefix="bench_tracking_")
@@ -463,7 +467,7 @@ def run(args) -> Path:
     try:
         for spec in specs:
             t0 = time.perf_counter()
-            ep_dir = cached_episode(cache, spec, config)
+            ep_dir = cached_episode(cache, spec, Config())
             entry = {"name": spec.name, "object": spec.object, "seed": spec.seed, "kind": spec.kind,
                      "level": spec.level, "frames": spec.frames, "table": spec.table,
                      "simulate_or_load_s": time.perf_counter() - t0, "methods": {}}

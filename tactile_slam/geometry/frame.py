@@ -463,7 +463,10 @@ class FrameBuilder:
             contact = contact.to(self.device).bool()
         changed = contact if contact is not None else torch.zeros(gradients.shape[:3], dtype=torch.bool,
                                                                   device=gradients.device)
-        return self._finish(gradients, None, dilate(changed, self.config.contact.dilate), contact, index, timestamp)
+        changed = dilate(changed, self.config.contact.dilate)
+        if self.config.contact.given_masks == "region":
+            return self._finish(gradients, contact, changed, None, index, timestamp)
+        return self._finish(gradients, None, changed, contact, index, timestamp)
 
     def _finish(self, gradients, colour, changed, given_contact, index, timestamp) -> Frame:
         cfg = self.config

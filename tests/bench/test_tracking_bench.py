@@ -69,6 +69,22 @@ def test_tiny_run_writes_finite_report(tmp_path):
     assert path.name == spec.name and time.perf_counter() - t0 < 2.0
 
 
+def test_config_reaches_the_runs_and_a_bad_one_stops_first(tmp_path):
+    cfg = tmp_path / "region.yaml"
+    cfg.write_text("contact:\n  given_masks: region\n")
+    common = ["--objects", "seed", "--seeds", "0", "--frames", "30", "--methods", "nf-kf", "--protocol", "tracking",
+              "--level", "gradients", "--work", str(tmp_path / "runs")]
+    tracking.run(parse(tmp_path, *common, "--config", str(cfg)))
+    spec = tracking.episode_specs(parse(tmp_path, *common))[0]
+    used = Config.from_yaml(tmp_path / "runs" / spec.name / "nf-kf" / "config.yaml")
+    assert used.contact.given_masks == "region"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("contact:\n  given_masks: loose\n")
+    with pytest.raises(Exception, match="given_masks"):
+        tracking.run(parse(tmp_path, *common, "--config", str(bad), "--out", str(tmp_path / "other.json")))
+    assert not (tmp_path / "other.json").exists()
+
+
 def test_append_merges_runs_into_one_report(tmp_path):
     """Two commands, the second with --append: one report with both runs, both tables, the
     episodes of both, and targets recomputed on the merged summary; a rerun of a table

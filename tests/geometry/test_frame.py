@@ -50,6 +50,35 @@ class TestFromGradients:
         f = fb.from_gradients(g, contact=m)
         assert torch.equal(f.contact, m)
 
+    def test_given_masks_as_region_get_the_depth_rule(self):
+        """``contact.given_masks: region``: a given mask bounds the contact like an image's
+        colour mask; the depth test and the final erosion apply inside it."""
+        cfg = Config()
+        cfg.contact.given_masks = "region"
+        fb = FrameBuilder(cfg)
+        h = spherical_cap(49.76, 12.0)
+        g = central_gradients(h).float()
+        everywhere = torch.ones(1, 240, 320, dtype=torch.bool)
+        assert torch.equal(fb.from_gradients(g, contact=everywhere).contact, fb.from_gradients(g).contact)
+        left = torch.zeros(1, 240, 320, dtype=torch.bool)
+        left[..., :160] = True
+        deep = (h < -0.2 / 0.0634).numpy() & left.numpy()  # a deep press keeps the fixed 0.2 mm rule
+        true = ndimage.binary_erosion(deep[0], np.ones((5, 5)), border_value=0)
+        assert np.array_equal(fb.from_gradients(g, contact=left).contact[0].numpy(), true)
+
+    def test_given_loose_mask_as_region_drops_the_shallow_rim(self):
+        """A mask of everything pressed 0.03 mm (a simulator's physical contact) keeps, as a
+        region, only the part deeper than half the touch's depth."""
+        cfg = Config()
+        h = spherical_cap(49.76, 3.0)  # 0.19 mm deep: the relative rule applies
+        g = central_gradients(h).float()
+        loose = (h < -0.03 / 0.0634)[None]
+        assert torch.equal(FrameBuilder(cfg).from_gradients(g, contact=loose).contact, loose)
+        cfg.contact.given_masks = "region"
+        c = FrameBuilder(cfg).from_gradients(g, contact=loose).contact
+        assert c.any() and not (c & ~loose).any()
+        assert float(h[None][c].max()) < -0.45 * 3.0 and int(c.sum()) < 0.6 * int(loose.sum())
+
     def test_batch_equals_single(self):
         fb = FrameBuilder(Config())
         g = torch.cat([central_gradients(spherical_cap(cc=cc)).float() for cc in (-30.0, 0.0, 25.0)])
