@@ -12,12 +12,13 @@ per-pair matching and RANSAC of :mod:`tactile_slam.loop.matching`:
 * a **descriptor index** over the keyframes' SIFT descriptors: each query descriptor
   takes its ``k`` nearest indexed descriptors; each distinct keyframe among them gets
   one vote; the keyframes with the most votes (at least ``min_votes``) are the
-  candidates. The index is an OpenCV FLANN kd-tree forest rebuilt when the descriptors
-  added since the last build (searched exactly, by brute force) or removed since then
-  exceed a fraction of it; small pools are searched exactly.
+  candidates. The newest descriptors (up to ``exact_max``) are searched exactly; older
+  ones sit in OpenCV FLANN kd-tree forests of sizes at least doubling (the logarithmic
+  method, :class:`DescriptorIndex`), so no part of the search grows linearly with the map
+  and each descriptor is rebuilt into a forest ``O(log N)`` times.
 
-Per-query cost is ``O(Q log N)`` for the kd-tree part plus ``O(Q P)`` for the ``P``
-pending descriptors, instead of a match and a RANSAC per keyframe.
+Per-query cost is ``O(Q log^2 N)`` for the kd-tree levels plus ``O(Q exact_max)`` for the
+exact tail, instead of a match and a RANSAC per keyframe.
 """
 
 from __future__ import annotations
@@ -120,9 +121,10 @@ class IndexSettings:
     Attributes:
         neighbours: nearest descriptors per query descriptor (``k``).
         min_votes: least votes for a keyframe to be returned.
-        exact_max: pools up to this many descriptors are searched exactly.
-        rebuild_fraction: rebuild the kd-trees when the pending (added since the build)
-            or removed descriptors exceed this fraction of the indexed ones.
+        exact_max: the newest descriptors, up to this many, are searched exactly (a
+            map that small is searched exactly as a whole).
+        rebuild_fraction: rebuild a kd-tree level when the descriptors of keyframes
+            removed from it exceed this fraction of it.
         trees: kd-trees in the FLANN forest.
         checks: leaves FLANN visits per query (accuracy vs time).
     """
@@ -144,8 +146,27 @@ def _exact_knn(query: np.ndarray, pool: np.ndarray, k: int) -> tuple[np.ndarray,
     return idx.numpy().astype(np.int64), vals.numpy()
 
 
+@dataclass
+class _Level:
+    """A kd-tree forest over the descriptors of some keyframes (``ids``); ``dead`` counts
+    the descriptors of those removed since it was built, still in its trees."""
+
+    ids: set[int]
+    owner: np.ndarray
+    flann: cv2.flann_Index
+    dead: int = 0
+
+
 class DescriptorIndex:
     """Approximate nearest-neighbour index of keyframe descriptors with per-keyframe voting.
+
+    The descriptors of the newest keyframes (at most ``exact_max``) are searched exactly;
+    when they exceed it they become a kd-tree *level*, and a level at least half the size
+    of the one before it is merged into it (the logarithmic method: levels at least
+    doubling in size, each descriptor rebuilt ``O(log N)`` times). A query searches every
+    level and the exact tail, so it costs ``O(Q log^2 N)`` plus ``O(Q exact_max)``, at any
+    map size. A level loses the keyframes removed from it and is rebuilt once more than
+    ``rebuild_fraction`` of it is dead.
 
     Args:
         settings: index settings.
@@ -156,12 +177,9 @@ class DescriptorIndex:
         if self.settings.neighbours < 1 or self.settings.min_votes < 1:
             raise RetrievalError("index neighbours and min_votes must be >= 1")
         self._blocks: dict[int, np.ndarray] = {}  # live descriptors per keyframe id
-        self._built_desc = np.zeros((0, 128), np.float32)
-        self._built_owner = np.zeros(0, np.int64)
-        self._flann: cv2.flann_Index | None = None
-        self._pending: list[int] = []  # ids added since the build, in order
-        self._removed = 0  # built descriptors whose keyframe has been removed
-        self._pending_cache: tuple[np.ndarray, np.ndarray] | None = None
+        self._levels: list[_Level] = []  # kd-tree levels, largest first
+        self._tail: list[int] = []  # ids searched exactly, in order
+        self._tail_cache: tuple[np.ndarray, np.ndarray] | None = None
 
     def __len__(self) -> int:
         return len(self._blocks)
@@ -173,68 +191,74 @@ class DescriptorIndex:
     def n_descriptors(self) -> int:
         return sum(len(d) for d in self._blocks.values())
 
+    @property
+    def level_sizes(self) -> list[int]:
+        """Descriptors in each kd-tree level (dead ones included), largest first; then the
+        exact tail's count last."""
+        return [len(lv.owner) for lv in self._levels] + [self._count(self._tail)]
+
     def add(self, kf_id: int, descriptors: torch.Tensor | np.ndarray) -> None:
         """Index a keyframe's ``(N, D)`` descriptors (``N`` may be 0)."""
         if kf_id in self._blocks:
             raise RetrievalError(f"keyframe {kf_id} is already indexed")
         d = np.ascontiguousarray(descriptors.cpu().numpy() if isinstance(descriptors, torch.Tensor) else descriptors,
                                  dtype=np.float32)
-        if d.ndim != 2 or (len(d) and d.shape[1] != self._built_desc.shape[1]):
-            raise RetrievalError(f"descriptors must be (N, {self._built_desc.shape[1]}), got {d.shape}")
+        if d.ndim != 2 or (len(d) and d.shape[1] != 128):
+            raise RetrievalError(f"descriptors must be (N, 128), got {d.shape}")
         if not np.isfinite(d).all():
             raise RetrievalError(f"descriptors of keyframe {kf_id} contain NaN or Inf")
         self._blocks[kf_id] = d
-        self._pending.append(kf_id)
-        self._pending_cache = None
-        self._maybe_rebuild()
+        self._tail.append(kf_id)
+        self._tail_cache = None
+        if self._count(self._tail) > self.settings.exact_max:
+            self._levels.append(self._build(self._tail))
+            self._tail = []
+            while len(self._levels) >= 2 and 2 * self._live(self._levels[-1]) >= self._live(self._levels[-2]):
+                last = self._levels.pop()
+                self._levels[-1] = self._build(self._levels[-1].ids | last.ids)
 
     def remove(self, kf_id: int) -> None:
         """Drop a keyframe (e.g. deactivated by the coverage set); unknown ids are an error."""
         d = self._blocks.pop(kf_id, None)
         if d is None:
             raise RetrievalError(f"keyframe {kf_id} is not indexed")
-        if kf_id in self._pending:
-            self._pending.remove(kf_id)
-            self._pending_cache = None
+        if kf_id in self._tail:
+            self._tail.remove(kf_id)
+            self._tail_cache = None
         else:
-            self._removed += len(d)
-        self._maybe_rebuild()
+            i = next(i for i, lv in enumerate(self._levels) if kf_id in lv.ids)
+            lv = self._levels[i]
+            lv.ids.discard(kf_id)
+            lv.dead += len(d)
+            if not lv.ids:
+                del self._levels[i]
+            elif lv.dead > self.settings.rebuild_fraction * len(lv.owner):
+                self._levels[i] = self._build(lv.ids)
+        if self._levels and self.n_descriptors <= self.settings.exact_max:  # shrank back: all exact
+            self._tail = list(self._blocks)
+            self._levels = []
+            self._tail_cache = None
 
-    def _pending_pool(self) -> tuple[np.ndarray, np.ndarray]:
-        if self._pending_cache is None:
-            blocks = [self._blocks[i] for i in self._pending]
+    def _count(self, ids) -> int:
+        return sum(len(self._blocks[i]) for i in ids)
+
+    def _live(self, level: _Level) -> int:
+        return len(level.owner) - level.dead
+
+    def _build(self, ids) -> _Level:
+        ids = sorted(ids)
+        blocks = [self._blocks[i] for i in ids]
+        desc = np.concatenate(blocks) if blocks else np.zeros((0, 128), np.float32)
+        owner = np.repeat(np.asarray(ids, np.int64), [len(b) for b in blocks])
+        return _Level(set(ids), owner, cv2.flann_Index(desc, dict(algorithm=1, trees=self.settings.trees)))
+
+    def _tail_pool(self) -> tuple[np.ndarray, np.ndarray]:
+        if self._tail_cache is None:
+            blocks = [self._blocks[i] for i in self._tail]
             desc = np.concatenate(blocks) if blocks else np.zeros((0, 128), np.float32)
-            owner = np.repeat(np.asarray(self._pending, np.int64), [len(b) for b in blocks])
-            self._pending_cache = (desc, owner)
-        return self._pending_cache
-
-    def _maybe_rebuild(self) -> None:
-        s = self.settings
-        n_built = len(self._built_owner)
-        n_pending = sum(len(self._blocks[i]) for i in self._pending)
-        if n_built + n_pending - self._removed <= s.exact_max:
-            if self._flann is not None:  # shrank back: search everything exactly
-                self._rebuild(flann=False)
-            return
-        limit = s.rebuild_fraction * n_built
-        if self._flann is None or n_pending > limit or self._removed > limit:
-            self._rebuild(flann=True)
-
-    def _rebuild(self, flann: bool) -> None:
-        ids = list(self._blocks)
-        if flann:
-            blocks = [self._blocks[i] for i in ids]
-            self._built_desc = np.concatenate(blocks)
-            self._built_owner = np.repeat(np.asarray(ids, np.int64), [len(b) for b in blocks])
-            self._flann = cv2.flann_Index(self._built_desc, dict(algorithm=1, trees=self.settings.trees))
-            self._pending = []
-        else:
-            self._built_desc = np.zeros((0, 128), np.float32)
-            self._built_owner = np.zeros(0, np.int64)
-            self._flann = None
-            self._pending = ids
-        self._removed = 0
-        self._pending_cache = None
+            owner = np.repeat(np.asarray(self._tail, np.int64), [len(b) for b in blocks])
+            self._tail_cache = (desc, owner)
+        return self._tail_cache
 
     def neighbours(self, query: torch.Tensor | np.ndarray) -> np.ndarray:
         """Keyframe ids of the ``k`` nearest live descriptors of each query descriptor.
@@ -248,15 +272,17 @@ class DescriptorIndex:
         q = np.ascontiguousarray(query.cpu().numpy() if isinstance(query, torch.Tensor) else query, np.float32)
         k = self.settings.neighbours
         out_ids, out_d = [], []
-        if self._flann is not None and len(q):
-            kk = min(k + (k if self._removed else 0), len(self._built_owner))
-            idx, d2 = self._flann.knnSearch(q, kk, params=dict(checks=self.settings.checks))
+        for lv in self._levels if len(q) else []:
+            kk = min(k + (k if lv.dead else 0), len(lv.owner))
+            idx, d2 = lv.flann.knnSearch(q, kk, params=dict(checks=self.settings.checks))
             idx = idx.astype(np.int64).reshape(len(q), kk)
-            owner = self._built_owner[np.clip(idx, 0, None)]
-            dead = (idx < 0) | ~np.isin(owner, np.fromiter(self._blocks, np.int64, len(self._blocks)))
+            owner = lv.owner[np.clip(idx, 0, None)]
+            dead = idx < 0
+            if lv.dead:
+                dead |= ~np.isin(owner, np.fromiter(lv.ids, np.int64, len(lv.ids)))
             out_ids.append(np.where(dead, -1, owner))
             out_d.append(np.where(dead, np.inf, d2.reshape(len(q), kk)))
-        desc, owner = self._pending_pool()
+        desc, owner = self._tail_pool()
         if len(desc) and len(q):
             idx, d2 = _exact_knn(q, desc, k)
             out_ids.append(owner[idx])

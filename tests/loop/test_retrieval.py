@@ -25,7 +25,7 @@ def test_index_finds_the_revisited_keyframe(exact_max):
     for i, d in enumerate(blocks):
         index.add(i, d)
     assert len(index) == 60 and index.n_descriptors == 2400
-    assert (index._flann is not None) == (exact_max < 2400)
+    assert (len(index.level_sizes) > 1) == (exact_max < 2400)
     g = np.random.default_rng(5)
     query = blocks[17][:25] + g.normal(0, 1.0, (25, 128)).astype(np.float32)
     assert index.query(query, None, 3)[0] == 17
@@ -47,22 +47,40 @@ def test_exact_neighbours_match_brute_force():
     np.testing.assert_array_equal(index.neighbours(q), expected)
 
 
-def test_pending_and_removed_after_build():
+def test_tail_and_removed_after_build():
     blocks = _keyframe_descriptors(30, 40, seed=4)
     index = DescriptorIndex(IndexSettings(exact_max=400, rebuild_fraction=0.5))
-    for i, d in enumerate(blocks[:20]):
-        index.add(i, d)
-    built = len(index._built_owner)
-    for i, d in enumerate(blocks[20:], start=20):
-        index.add(i, d)  # pending (below the rebuild fraction) or rebuilt: found either way
-    assert index.query(blocks[25][:20], None, 1) == [25]
+    for i, d in enumerate(blocks):
+        index.add(i, d)  # in the exact tail or in a kd-tree level: found either way
+    assert index.query(blocks[25][:20], None, 1) == [25] and index.query(blocks[3][:20], None, 1) == [3]
     index.remove(5)
     assert 5 not in index and 5 not in index.vote(blocks[5][:20])
-    assert len(index._built_owner) >= built
     with pytest.raises(RetrievalError):
         index.remove(5)
     with pytest.raises(RetrievalError):
         index.add(3, blocks[3])
+
+
+def test_levels_stay_logarithmic_and_shrink_back_to_exact():
+    """Levels at least double in size and the exact tail stays within ``exact_max``, so a
+    query never searches a pool that grows with the map; every keyframe stays findable;
+    removing most of the map rebuilds or drops levels, and a small map is exact again."""
+    blocks = _keyframe_descriptors(200, 30, seed=6)
+    index = DescriptorIndex(IndexSettings(exact_max=100, rebuild_fraction=0.25))
+    for i, d in enumerate(blocks):
+        index.add(i, d)
+        *levels, tail = index.level_sizes
+        assert tail <= 100 and all(a > 2 * b for a, b in zip(levels, levels[1:]))
+        assert sum(levels) + tail == index.n_descriptors
+    assert 2 <= len(levels) <= math.log2(6000 / 100) + 1
+    for i in (0, 77, 150, 199):
+        assert index.query(blocks[i][:20], None, 1) == [i]
+    for i in range(197):
+        index.remove(i)
+        *levels, tail = index.level_sizes
+        assert sum(levels) + tail >= index.n_descriptors  # dead descriptors only until a rebuild
+    assert index.level_sizes == [90] and index.query(blocks[198][:20], None, 1) == [198]
+    assert index.vote(blocks[10][:20]).keys() <= {197, 198, 199}
 
 
 def test_empty_index_and_query():
