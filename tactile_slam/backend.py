@@ -56,7 +56,7 @@ from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.incremental import IncrementalSolver
 from tactile_slam.posegraph.sessions import SessionGroups
-from tactile_slam.registration.refine import refine_edges
+from tactile_slam.registration.refine import pressed_core, refine_edges
 from tactile_slam.registration.result import pose_error
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -401,12 +401,15 @@ class BackEnd:
 
     def _refine(self, loops: list[Loop]) -> list[Loop]:
         """Accepted loops re-measured over ``posegraph.refine_n_samples`` reference pixels
-        (every contact pixel by default); a loop whose refinement fails its checks keeps
+        (every contact pixel by default; with ``posegraph.refine_core``, of the pressed core,
+        :func:`~tactile_slam.registration.refine.pressed_core`); a loop whose refinement fails its checks keeps
         its first measurement."""
-        Zs, ok = refine_edges([self.keyframes[lp.ref_id].frame for lp in loops],
-                              [self.keyframes[lp.tar_id].frame for lp in loops],
+        cfg = self.config
+        frame = (lambda i: pressed_core(self.keyframes[i].frame, cfg.depth_test, cfg.contact.height_percentile)) \
+            if cfg.posegraph.refine_core else (lambda i: self.keyframes[i].frame)
+        Zs, ok = refine_edges([frame(lp.ref_id) for lp in loops], [frame(lp.tar_id) for lp in loops],
                               torch.stack([lp.ref_T_tar for lp in loops]), self.detector.nf_config,
-                              self.config.posegraph.refine_n_samples)
+                              cfg.posegraph.refine_n_samples)
         self.stats.refined += int(ok.sum())
         self.stats.refine_failed += int((~ok).sum())
         return [replace(lp, ref_T_tar=Z) for lp, Z in zip(loops, Zs)]

@@ -369,6 +369,11 @@ class PoseGraphConfig:
     # (tactile_slam/registration/refine.py)
     refine_loops: bool = True
     refine_n_samples: int | None = None
+    # ... over the pressed core of each keyframe's contact: the pixels that also pass the
+    # contact depth test (contact.height_threshold_mm / height_fraction). Image input
+    # already has that contact; a looser given mask's rim biases the tilt
+    # (docs/registration.md, "Tilt bias at a loose mask's rim")
+    refine_core: bool = True
     # incremental updates: first region (poses), boundary test (whitened cost), LM steps per region
     incremental_window: int = 64
     incremental_tol: float = 1e-2

@@ -19,10 +19,33 @@ from dataclasses import replace
 import torch
 
 from tactile_slam.config import NormalFlowConfig
+from tactile_slam.geometry.contact import contact_mask
 from tactile_slam.geometry.frame import Frame
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import register
 from tactile_slam.registration.result import RegistrationError
+
+
+def pressed_core(frame: Frame, depth_test: tuple[float, float | None, float], percentile_q: float) -> Frame:
+    """The frames with their contact narrowed to the pixels that pass the contact depth
+    test (:func:`~tactile_slam.geometry.contact.contact_mask` with the contact as its
+    region, no further erosion): where the gel follows the object. A contact mask made by
+    that test (image input) comes back unchanged; a looser given mask loses its shallow
+    rim and the texture valleys the gel does not reach, whose normals do not turn with the
+    object (docs/registration.md, "Tilt bias at a loose mask's rim").
+
+    Args:
+        frame: ``B`` frames.
+        depth_test: ``(threshold_px, fraction, floor_px)`` (:attr:`Config.depth_test`).
+        percentile_q: the height percentile of the gel level (``contact.height_percentile``).
+
+    Returns:
+        a :class:`Frame` sharing every map but ``contact`` (``(B, H, W)`` bool) and
+        ``in_contact``, which is kept.
+    """
+    threshold, fraction, floor = depth_test
+    core, _ = contact_mask(frame.height, frame.contact, threshold, percentile_q, 1, fraction, floor)
+    return replace(frame, contact=core)
 
 
 def refine_edges(refs: Sequence[Frame], tars: Sequence[Frame], ref_T_tar: torch.Tensor,

@@ -11,7 +11,7 @@ from tactile_slam.config import Config
 from tactile_slam.geometry.frame import Frame, FrameBuilder
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import register
-from tactile_slam.registration.refine import refine_edges
+from tactile_slam.registration.refine import pressed_core, refine_edges
 from tactile_slam.registration.result import RegistrationError, pose_error
 from tests.registration.surfaces import Surface, frames, rigid, textured
 
@@ -84,3 +84,65 @@ def test_reference_without_contact_keeps_the_measurement(scene):
     T = se3.inverse(truths[:1])
     refined, ok = refine_edges([lifted[0]], [f[1]], T, NF)
     assert ok.tolist() == [False] and torch.equal(refined, T)
+
+
+@pytest.fixture(scope="module")
+def ribbed_touches():
+    """Simulated touches of the ribbed shell, each with its copy turned 12 deg about the
+    sensor x and y axes through the contact centre; contact masks as the simulator gives
+    them (everything pressed 0.03 mm, rim and valleys included)."""
+    import numpy as np
+
+    from tactile_slam.sim.motions import pressed_poses
+    from tactile_slam.sim.objects import make_object
+    from tactile_slam.sim.renderer import GelRenderer
+
+    cfg = Config()
+    mesh = make_object("shell", resolution_mm=0.1)
+    mesh.compute_vertex_normals()
+    v, n = np.asarray(mesh.vertices), np.asarray(mesh.vertex_normals)
+    ren, fb, s = GelRenderer(mesh, cfg), FrameBuilder(cfg), cfg.sensor.m_per_px
+    out = []
+    for pick in (np.argmax(v[:, 0]), np.argmin(v[:, 1])):  # two spots on the ribbed side
+        P = pressed_poses(ren, v[pick][None], n[pick][None], np.array([[1.0, 0, 0]]), np.zeros(1), np.zeros(1),
+                          np.zeros(1), np.array([0.6e-3]))[0]
+        m0 = ren.render(P[None])
+        rr, cc = np.nonzero(m0.contact[0].numpy())
+        centre = np.array([(cc.mean() - 159.5) * s, (rr.mean() - 119.5) * s,
+                           float(m0.height[0][m0.contact[0]].mean()) * s])
+        for turn in (rigid(rx_deg=12.0), rigid(ry_deg=12.0)):
+            M = turn.numpy()
+            M[:3, 3] = centre - M[:3, :3] @ centre  # about the contact centre
+            m1 = ren.render((P @ M)[None])
+            out.append((fb.from_gradients(m0.gradients, m0.contact), fb.from_gradients(m1.gradients, m1.contact),
+                        torch.from_numpy(M)))
+    return cfg, out
+
+
+def test_pressed_core_removes_the_tilt_bias_of_a_loose_mask(ribbed_touches):
+    """Measured from the truth over every pixel of the given masks, NormalFlow under-reads
+    the 12 deg turn (measured: up to 0.80 deg off); over the pressed core it stays within
+    0.14 deg."""
+    cfg, pairs = ribbed_touches
+    nf = replace(cfg.normalflow, ccs_threshold=0.7)
+    core = lambda f: pressed_core(f, cfg.depth_test, cfg.contact.height_percentile)  # noqa: E731
+    full_err, core_err = [], []
+    for a, b, truth in pairs:
+        full, ok_full = refine_edges([a], [b], truth[None], nf)
+        narrowed, ok_core = refine_edges([core(a)], [core(b)], truth[None], nf)
+        assert bool(ok_full) and bool(ok_core)
+        full_err.append(float(pose_error(full, truth[None])[0][0]))
+        core_err.append(float(pose_error(narrowed, truth[None])[0][0]))
+    assert max(core_err) < 0.25 and max(full_err) > 2 * max(core_err), (full_err, core_err)
+
+
+def test_pressed_core_of_an_image_style_contact_is_that_contact(ribbed_touches):
+    """A contact made by the depth rule itself (image input, or gradients without masks)
+    comes back as it is; a given loose mask only loses pixels."""
+    cfg, pairs = ribbed_touches
+    a = pairs[0][0]
+    own = FrameBuilder(cfg).from_gradients(a.gradients)
+    assert torch.equal(pressed_core(own, cfg.depth_test, cfg.contact.height_percentile).contact, own.contact)
+    narrowed = pressed_core(a, cfg.depth_test, cfg.contact.height_percentile)
+    assert not (narrowed.contact & ~a.contact).any() and 0 < int(narrowed.contact.sum()) < int(a.contact.sum())
+    assert narrowed.normals is a.normals and narrowed.height is a.height
