@@ -230,8 +230,10 @@ class DescriptorIndex:
             lv = self._levels[i]
             lv.ids.discard(kf_id)
             lv.dead += len(d)
-            if not lv.ids:
+            if self._live(lv) == 0:  # keyframes without descriptors may remain: to the tail
                 del self._levels[i]
+                self._tail += sorted(lv.ids)
+                self._tail_cache = None
             elif lv.dead > self.settings.rebuild_fraction * len(lv.owner):
                 self._levels[i] = self._build(lv.ids)
         if self._levels and self.n_descriptors <= self.settings.exact_max:  # shrank back: all exact

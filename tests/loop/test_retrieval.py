@@ -83,6 +83,25 @@ def test_levels_stay_logarithmic_and_shrink_back_to_exact():
     assert index.vote(blocks[10][:20]).keys() <= {197, 198, 199}
 
 
+def test_keyframes_without_descriptors_in_a_level_can_be_removed():
+    """A level whose keyframes with descriptors are all removed is dropped (not rebuilt
+    empty); the ones without descriptors it still held move to the exact tail and remain
+    removable."""
+    g = np.random.default_rng(7)
+    desc = lambda n: g.random((n, 128), np.float32) * 100  # noqa: E731
+    index = DescriptorIndex(IndexSettings(exact_max=100))
+    blocks = [desc(60) for _ in range(4)]
+    for i, d in enumerate(blocks):
+        index.add(i, d)  # levels merge into one of 240
+    index.add(4, np.zeros((0, 128), np.float32))
+    index.add(5, desc(101))  # a second level {4, 5} of 101, too small to merge
+    assert index.level_sizes == [240, 101, 0]
+    index.remove(5)
+    assert index.level_sizes == [240, 0] and 4 in index
+    index.remove(4)
+    assert len(index) == 4 and index.query(blocks[2][:20], None, 1) == [2]
+
+
 def test_empty_index_and_query():
     index = DescriptorIndex()
     assert index.vote(np.zeros((4, 128), np.float32)) == {}
