@@ -109,6 +109,7 @@ def test_own_layout_roundtrip(tmp_path):
          r"recon.poisson_max_depth must be >= poisson_min_depth"),
         ("loop: {ransac_confidence: 1}", r"loop.ransac_confidence must be in \(0, 1\)"),
         ("recon: {poisson_threads: 0}", r"recon.poisson_threads must be -1 \(every core\) or an integer >= 1"),
+        ("contact: {given_masks: loose}", r"contact.given_masks must be one of \('final', 'region'\), got 'loose'"),
     ],
 )
 def test_bad_configs(tmp_path, text, match):
