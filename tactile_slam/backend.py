@@ -402,12 +402,14 @@ class BackEnd:
     def _refine(self, loops: list[Loop]) -> list[Loop]:
         """Accepted loops re-measured over ``posegraph.refine_n_samples`` reference pixels
         (every contact pixel by default; with ``posegraph.refine_core``, of the pressed core,
-        :func:`~tactile_slam.registration.refine.pressed_core`); a loop whose refinement fails its checks keeps
-        its first measurement."""
+        :func:`~tactile_slam.registration.refine.pressed_core`); a loop whose refinement
+        fails its checks keeps its first measurement. Each keyframe's maps are expanded (and
+        narrowed) once, however many of the loops it ends."""
         cfg = self.config
-        frame = (lambda i: pressed_core(self.keyframes[i].frame, cfg.depth_test, cfg.contact.height_percentile)) \
-            if cfg.posegraph.refine_core else (lambda i: self.keyframes[i].frame)
-        Zs, ok = refine_edges([frame(lp.ref_id) for lp in loops], [frame(lp.tar_id) for lp in loops],
+        frame = {i: self.keyframes[i].frame for i in {e for lp in loops for e in (lp.ref_id, lp.tar_id)}}
+        if cfg.posegraph.refine_core:
+            frame = {i: pressed_core(f, cfg.depth_test, cfg.contact.height_percentile) for i, f in frame.items()}
+        Zs, ok = refine_edges([frame[lp.ref_id] for lp in loops], [frame[lp.tar_id] for lp in loops],
                               torch.stack([lp.ref_T_tar for lp in loops]), self.detector.nf_config,
                               cfg.posegraph.refine_n_samples)
         self.stats.refined += int(ok.sum())

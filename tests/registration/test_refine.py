@@ -146,3 +146,16 @@ def test_pressed_core_of_an_image_style_contact_is_that_contact(ribbed_touches):
     narrowed = pressed_core(a, cfg.depth_test, cfg.contact.height_percentile)
     assert not (narrowed.contact & ~a.contact).any() and 0 < int(narrowed.contact.sum()) < int(a.contact.sum())
     assert narrowed.normals is a.normals and narrowed.height is a.height
+
+
+def test_pressed_core_without_contact_is_empty_and_refinement_keeps_the_measurement(scene):
+    """A frame without contact has an empty core (no error); refining a loop from it fails
+    its checks and keeps the first measurement."""
+    f, truths = scene
+    cfg = Config()
+    flat = FrameBuilder(cfg).from_gradients(torch.zeros(1, *f.shape, 2))
+    core = pressed_core(flat, cfg.depth_test, cfg.contact.height_percentile)
+    assert core.contact.shape == flat.contact.shape and not core.contact.any()
+    Z = se3.inverse(truths[:1])
+    refined, ok = refine_edges([core], [f[1]], Z, NF)
+    assert ok.tolist() == [False] and torch.equal(refined, Z)
