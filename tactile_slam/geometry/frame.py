@@ -448,9 +448,10 @@ class FrameBuilder:
         index: torch.Tensor | None = None,
         timestamp: torch.Tensor | None = None,
     ) -> Frame:
-        """``(B, H, W, 2)`` gradients (+ optional ``(B, H, W)`` contact masks, used
-        as the final eroded mask as-is) -> :class:`Frame`; tensors or numpy arrays.
-        Without masks the contact comes from the height rule alone."""
+        """``(B, H, W, 2)`` gradients (+ optional ``(B, H, W)`` contact masks: the final
+        eroded mask as-is, or with ``contact.given_masks: region`` the region the height
+        rule and final erosion apply in, like an image's colour mask) -> :class:`Frame`;
+        tensors or numpy arrays. Without masks the contact comes from the height rule alone."""
         gradients = as_tensor(gradients, "gradients")
         contact = None if contact is None else as_tensor(contact, "contact masks")
         check_gradients(gradients, self.config.sensor.shape)
