@@ -6,7 +6,8 @@ Two layouts (method.md section 9.1):
   ``contact_masks.npy`` ``(N, H, W)``: the NormalFlow tracking dataset. Both are
   memory-mapped, so long sequences are read frame by frame;
 * an ``.npz`` with ``gradients`` ``(N, H, W, 2)`` (float16/32/64) and ``contact``
-  ``(N, H, W)``, e.g. the simulator's ``gt_gradients.npz``. Compressed or not, each array
+  ``(N, H, W)``, e.g. the simulator's ``gt_gradients.npz``, or with the ``.npy`` layout's
+  names ``gradient_maps`` and ``contact_masks``. Compressed or not, each array
   is read frame by frame from its zip stream (:class:`NpzFrames`): in order it streams,
   nothing ahead of the read frame is decompressed, and a read behind the last one
   decompresses the member again from its start (for random access over long sequences
@@ -33,6 +34,8 @@ CONTACT_NPY = "contact_masks.npy"
 EPISODE_NPZ = "gt_gradients.npz"  # a simulated episode's gradient record (tactile_slam.sim.episode)
 GRADIENTS_KEY = "gradients"
 CONTACT_KEY = "contact"
+NPZ_KEYS = ((GRADIENTS_KEY, CONTACT_KEY), (GRADIENTS_NPY[:-4], CONTACT_NPY[:-4]))
+"""The ``.npz`` member pairs read as (gradients, contact), in order of preference."""
 
 
 def _load_npy(path: Path) -> np.ndarray:
@@ -117,9 +120,20 @@ class NpzFrames:
 
 
 def _load_npz(path: Path) -> tuple[NpzFrames, NpzFrames]:
+    """The gradients and contact members of an ``.npz``: the first pair of :data:`NPZ_KEYS`
+    that it holds both of."""
     if not path.is_file():
         raise InputError(f"gradient sequence file not found: {path}")
-    return NpzFrames(path, GRADIENTS_KEY), NpzFrames(path, CONTACT_KEY)
+    try:
+        with zipfile.ZipFile(path) as z:
+            names = {n[:-4] for n in z.namelist() if n.endswith(".npy")}
+    except (OSError, zipfile.BadZipFile) as exc:
+        raise InputError(f"cannot read {path}: {exc}") from exc
+    for gradients, contact in NPZ_KEYS:
+        if gradients in names and contact in names:
+            return NpzFrames(path, gradients), NpzFrames(path, contact)
+    pairs = " or ".join(f"{g!r} + {c!r}" for g, c in NPZ_KEYS)
+    raise InputError(f"{path} needs the arrays {pairs} (found {sorted(names)})")
 
 
 def check_sequence(gradients: np.ndarray, contact: np.ndarray, where: str) -> None:

@@ -104,8 +104,24 @@ class TestNpzLayout:
     def test_missing_key(self, tmp_path):
         g, _ = sequence()
         np.savez(tmp_path / "x.npz", gradients=g)
-        with pytest.raises(InputError, match="no array 'contact'"):
+        with pytest.raises(InputError, match=r"needs the arrays 'gradients' \+ 'contact' or 'gradient_maps' \+ "
+                                             r"'contact_masks' \(found \['gradients'\]\)"):
             GradientSequence(tmp_path / "x.npz", fps=25)
+
+    def test_npy_layout_names(self, tmp_path):
+        """An ``.npz`` may use the ``.npy`` layout's array names; where it holds both pairs,
+        ``gradients`` + ``contact`` are read."""
+        g, c = sequence()
+        np.savez_compressed(tmp_path / "x.npz", gradient_maps=g, contact_masks=c.astype(np.uint8))
+        src = GradientSequence(tmp_path / "x.npz", fps=25)
+        assert len(src) == len(g)
+        np.testing.assert_array_equal(src[3].gradients, g[3])
+        np.testing.assert_array_equal(src[3].contact, c[3])
+        other, _ = sequence(seed=1)
+        np.savez(tmp_path / "both.npz", gradient_maps=other, contact_masks=~c, gradients=g, contact=c)
+        frame = GradientSequence(tmp_path / "both.npz", fps=25)[2]
+        np.testing.assert_array_equal(frame.gradients, g[2])
+        np.testing.assert_array_equal(frame.contact, c[2])
 
     def test_nan_frame_raises_when_read(self, tmp_path):
         g, c = sequence()
