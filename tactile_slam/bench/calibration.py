@@ -3,7 +3,9 @@
 For each hidden-size choice and seeded split of a calibration folder: train with the
 default recipe, then score the held-out presses (gradient-angle MAE in rad, normal-angle
 MAE in degrees) with the reference model on the same presses, and time full-frame
-decoding (240x320 -> gradients) of the trained model.
+decoding (240x320 -> gradients) of the trained model. ``--split diameter`` holds out one
+ball size at a time instead (train on the other sizes' presses, score that size's): how a
+model decodes presses of a ball it has never seen.
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ import torch
 
 from tactile_slam.bench.common import set_threads, time_fn, timing_stats, write_json
 from tactile_slam.calibration.catalog import load_calibration_set
-from tactile_slam.calibration.dataset import build_dataset
+from tactile_slam.calibration.dataset import build_dataset, split_by_diameter
 from tactile_slam.calibration.evaluate import evaluate_model
 from tactile_slam.calibration.labels import label_presses
 from tactile_slam.calibration.model import GradientDecoder, load_model
@@ -30,7 +32,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--data", default=str(REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"),
                    help="folder holding calibration/ and reference_model/nnmodel.pth")
     p.add_argument("--hidden", default="16,16;32,32,32;64,64,64", help="sizes to compare, ';'-separated")
-    p.add_argument("--seeds", type=positive_int, default=3, help="seeded splits per size")
+    p.add_argument("--seeds", type=positive_int, default=3, help="seeded splits per size (--split random)")
+    p.add_argument("--split", choices=("random", "diameter"), default="random",
+                   help="random: seeded 80/20 splits by press; diameter: each ball size held out in turn")
     p.add_argument("--epochs", type=positive_int, default=TrainConfig.epochs)
     p.add_argument("--lr-step", type=positive_int, default=TrainConfig.lr_step)
     p.add_argument("--loss", default=TrainConfig.loss, choices=sorted(LOSSES))
@@ -52,7 +56,13 @@ def run(args) -> Path:
     bg = torch.from_numpy(calib.background).to(args.device)
     frame = torch.from_numpy(calib.image(calib.presses[0])).to(args.device)[None]
     sync = args.device.startswith("cuda")
-    splits = [build_dataset(calib, labels, sensor.mm_per_px, seed) for seed in range(args.seeds)]
+    if args.split == "diameter":
+        held_out = sorted({p.diameter_mm for p in calib.presses})
+        splits = [build_dataset(calib, labels, sensor.mm_per_px, seed, split=split_by_diameter(calib, d))
+                  for seed, d in enumerate(held_out)]
+    else:
+        held_out = [None] * args.seeds
+        splits = [build_dataset(calib, labels, sensor.mm_per_px, seed) for seed in range(args.seeds)]
     ref_evals = [evaluate_model(ref, calib, labels, s.split["test"], sensor.mm_per_px) for s in splits]
     results = {"reference": {
         "angle_mae_rad": statistics.mean(e.angle_mae for e in ref_evals),
@@ -68,9 +78,11 @@ def run(args) -> Path:
                               device=args.device, restarts=args.restarts)
             res = train_model(data.train, cfg)
             ev = evaluate_model(res.model, calib, labels, data.split["test"], sensor.mm_per_px)
-            runs.append({"seed": seed, "train_s": res.seconds, "angle_mae_rad": ev.angle_mae,
+            runs.append({"seed": seed, "held_out_mm": held_out[seed], "train_presses": len(data.split["train"]),
+                         "test_presses": len(data.split["test"]), "train_s": res.seconds, "angle_mae_rad": ev.angle_mae,
                          "normal_mae_deg": ev.to_dict()["normal_mae_deg"],
                          "reference_angle_mae_rad": ref_evals[seed].angle_mae,
+                         "reference_normal_mae_deg": ref_evals[seed].to_dict()["normal_mae_deg"],
                          "kept_seed": res.seed, "restarts": res.restarts, "by_slope": ev.to_dict()["by_slope"]})
         decoder = GradientDecoder(res.model, bg, 0.0)
         results["mlp_5-" + "-".join(map(str, hidden)) + "-2"] = {
@@ -83,6 +95,7 @@ def run(args) -> Path:
             "runs": runs,
         }
     results["settings"] = {"epochs": args.epochs, "lr_step": args.lr_step, "loss": args.loss, "seeds": args.seeds,
+                           "split": args.split,
                            "restarts": args.restarts,
                            "device": args.device, "threads": args.threads}
     return write_json(args.out, "calibration", results)

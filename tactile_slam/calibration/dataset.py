@@ -97,6 +97,24 @@ def split_presses(reldirs: list[str], seed: int, test_fraction: float = 0.2) -> 
     return {"train": [reldirs[i] for i in perm[:n_train]], "test": [reldirs[i] for i in perm[n_train:]]}
 
 
+def split_by_diameter(calib: CalibrationSet, held_out_mm: float) -> dict[str, list[str]]:
+    """Leave one ball size out: ``{"train": presses of every other diameter, "test": the
+    presses of ``held_out_mm``}``, each in catalog order. Measures how a model decodes
+    presses of a ball it was never trained on.
+
+    Raises:
+        ValueError: no press has that diameter, or no press has another one.
+    """
+    test = [p.reldir for p in calib.presses if math.isclose(p.diameter_mm, held_out_mm)]
+    train = [p.reldir for p in calib.presses if not math.isclose(p.diameter_mm, held_out_mm)]
+    sizes = sorted({p.diameter_mm for p in calib.presses})
+    if not test:
+        raise ValueError(f"no press of {held_out_mm} mm in {calib.root} (diameters {sizes})")
+    if not train:
+        raise ValueError(f"every press of {calib.root} is {held_out_mm} mm: nothing to train on without them")
+    return {"train": train, "test": test}
+
+
 def labelled_targets(
     calib: CalibrationSet, labels: dict[str, PressLabel], reldirs: list[str], mm_per_px: float,
     margin_px: float | None, skipped: dict[str, str],
@@ -163,14 +181,17 @@ def build_dataset(
     test_fraction: float = 0.2,
     margin_px: float | None = None,
     background_ratio: float = 0.2,
+    split: dict[str, list[str]] | None = None,
 ) -> CalibrationData:
-    """Split the presses by image (seeded), build contact samples per split and add
-    background zero-angle samples, ``background_ratio`` of each split's contact count.
+    """Split the presses by image (seeded; or take ``split``, e.g. :func:`split_by_diameter`),
+    build contact samples per split and add background zero-angle samples,
+    ``background_ratio`` of each split's contact count (``seed`` also draws those).
 
     Raises:
         CalibrationDataError: no usable training press remains.
     """
-    split = split_presses([p.reldir for p in calib.presses], seed, test_fraction)
+    if split is None:
+        split = split_presses([p.reldir for p in calib.presses], seed, test_fraction)
     train, skipped = press_samples(calib, labels, split["train"], mm_per_px, margin_px)
     test, skipped_test = press_samples(calib, labels, split["test"], mm_per_px, margin_px)
     skipped.update(skipped_test)

@@ -4,10 +4,11 @@ import pytest
 import torch
 
 from tactile_slam.calibration.catalog import CalibrationDataError, load_calibration_set
-from tactile_slam.calibration.dataset import build_dataset, press_samples, split_presses, sphere_targets
+from tactile_slam.calibration.dataset import (build_dataset, press_samples, split_by_diameter, split_presses,
+                                              sphere_targets)
 from tactile_slam.calibration.labels import PressLabel, label_presses
 
-from .conftest import MM_PER_PX
+from .conftest import MM_PER_PX, SYNTHETIC_PRESSES, write_calibration_folder
 
 
 class TestSphereTargets:
@@ -62,6 +63,35 @@ class TestSplit:
             split_presses([], 0)
         with pytest.raises(ValueError, match="test_fraction"):
             split_presses(["a"], 0, test_fraction=1.0)
+
+
+class TestSplitByDiameter:
+    def test_holds_out_one_ball_size(self, synthetic_calib):
+        calib = load_calibration_set(synthetic_calib)
+        split = split_by_diameter(calib, 9.5)
+        assert split == {"train": ["6.310mm/0", "6.310mm/1", "6.310mm/2", "6.310mm/3"],
+                         "test": ["9.500mm/0", "9.500mm/1"]}
+        assert split_by_diameter(calib, 6.31)["test"] == split["train"]
+
+    def test_bad(self, synthetic_calib, tmp_path):
+        calib = load_calibration_set(synthetic_calib)
+        with pytest.raises(ValueError, match=r"no press of 4.0 mm .*\[6.31, 9.5\]"):
+            split_by_diameter(calib, 4.0)
+        one_size = load_calibration_set(write_calibration_folder(tmp_path / "one", SYNTHETIC_PRESSES[:4]))
+        with pytest.raises(ValueError, match="every press .* is 6.31 mm: nothing to train on"):
+            split_by_diameter(one_size, 6.31)
+
+    def test_build_dataset_takes_the_split(self, synthetic_calib):
+        """The given split decides which presses' pixels land in each part."""
+        calib = load_calibration_set(synthetic_calib)
+        labels = {lb.reldir: lb for lb in label_presses(calib, MM_PER_PX, 2.0)}
+        data = build_dataset(calib, labels, MM_PER_PX, split=split_by_diameter(calib, 9.5))
+        assert data.split["test"] == ["9.500mm/0", "9.500mm/1"]
+        assert data.test.reldirs == ["9.500mm/0", "9.500mm/1"]
+        assert data.train.reldirs == ["6.310mm/0", "6.310mm/1", "6.310mm/2", "6.310mm/3"]
+        # the contact pixels of each part are those of its presses alone
+        alone, _ = press_samples(calib, labels, ["9.500mm/0", "9.500mm/1"], MM_PER_PX)
+        assert int((data.test.press >= 0).sum()) == len(alone)
 
 
 class TestBuildDataset:
