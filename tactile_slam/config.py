@@ -143,6 +143,7 @@ class CurvatureConfig:
 
 
 JACOBIAN_KINDS = ("analytic", "autograd")
+SAMPLE_SELECTIONS = ("spread", "topk", "threshold", "random")
 """``NormalFlowConfig.jacobian`` values (``registration.jacobian``'s closed form and torch.func)."""
 
 
@@ -150,8 +151,11 @@ JACOBIAN_KINDS = ("analytic", "autograd")
 class NormalFlowConfig:
     """NormalFlow registration parameters (method.md section 4).
 
-    ``n_samples`` of ``None`` uses every contact pixel. ``selection``: ``"topk"``
-    (exact top-k of |L| over the contact, default), ``"threshold"`` (the public
+    ``n_samples`` of ``None`` uses every contact pixel. ``selection``: ``"spread"``
+    (default: the top |L| within ``sample_cell_px``-square cells, each cell's share of
+    ``n_samples`` proportional to its contact pixels, so that the samples cover a large
+    contact; docs/registration.md, "Samples spread over the contact"), ``"topk"`` (exact
+    top-k of |L| over the contact, method.md 4.2), ``"threshold"`` (the public
     GelSLAM rule) or ``"random"`` (old NormalFlow: random contact pixels, seeded by
     ``seed``). ``check_scores`` False skips the CCS/SCR test (old NormalFlow).
     ``jacobian``: ``"analytic"`` or ``"autograd"`` (torch.func); both agree.
@@ -193,7 +197,8 @@ class NormalFlowConfig:
     min_shared: int = 10
     ccs_threshold: float = 0.85
     scr_threshold: float = 0.3
-    selection: str = "topk"
+    selection: str = "spread"
+    sample_cell_px: int = 16
     check_scores: bool = True
     jacobian: str = "analytic"
     lm_damping: float = 0.0
@@ -209,6 +214,10 @@ class NormalFlowConfig:
     def check(self, shape: tuple[int, int] | None = None) -> None:
         """Raise :class:`ConfigError` naming the first invalid setting. ``shape`` ``(H, W)``:
         the coarse and fallback factors must also divide the image size."""
+        if self.selection not in SAMPLE_SELECTIONS:
+            raise ConfigError(f"normalflow.selection must be one of {SAMPLE_SELECTIONS}, got {self.selection!r}")
+        if self.sample_cell_px < 1:
+            raise ConfigError(f"normalflow.sample_cell_px must be >= 1, got {self.sample_cell_px}")
         if self.jacobian not in JACOBIAN_KINDS:
             raise ConfigError(f"normalflow.jacobian must be one of {JACOBIAN_KINDS}, got {self.jacobian!r}")
         if self.max_iters < 1 or self.min_iters < 1 or self.coarse_max_iters < 1:

@@ -91,6 +91,8 @@ def test_own_layout_roundtrip(tmp_path):
         ("normalflow: {stall_check_iters: -3}", r"normalflow.stall_check_iters must be >= 0, got -3"),
         ("normalflow: {max_iters: 0}", r"normalflow.max_iters, min_iters and coarse_max_iters must be >= 1"),
         ("normalflow: {jacobian: numeric}", r"normalflow.jacobian must be one of"),
+        ("normalflow: {selection: best}", r"normalflow.selection must be one of \('spread', 'topk'"),
+        ("normalflow: {sample_cell_px: 0}", r"normalflow.sample_cell_px must be >= 1, got 0"),
         ("normalflow: {fallback_factors: [1]}", r"normalflow.fallback_factors must be >= 2"),
         # YAML's .nan and .inf pass a float annotation; a NaN threshold made every test false
         ("normalflow: {ccs_threshold: .nan}", r"normalflow.ccs_threshold must be a finite number, got nan"),

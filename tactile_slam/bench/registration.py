@@ -145,6 +145,7 @@ def run(args) -> Path:
 
     variants = {
         "normalflow": NormalFlowConfig(),
+        "normalflow_topk (global top-k samples, the default until 2026-11-29)": NormalFlowConfig(selection="topk"),
         "normalflow_coarse4": NormalFlowConfig(coarse_factors=(4,)),
         "normalflow_fallback16-4": NormalFlowConfig(fallback_factors=(16, 4)),
         "normalflow_fallback16-4_noshift": NormalFlowConfig(fallback_factors=(16, 4), fallback_shift_search=False),

@@ -10,8 +10,8 @@ Usage::
 
 ``tar_T_ref`` maps a static object point from reference-sensor into target-sensor
 coordinates (metres, float64). The Gauss-Newton solve estimates
-``(wx, wy, wz, tx, ty)`` in inverse-compositional form over the reference's
-highest-|curvature| contact pixels; ``tz`` comes afterwards from the mean height
+``(wx, wy, wz, tx, ty)`` in inverse-compositional form over reference contact pixels of
+high |curvature| spread over the contact (``NormalFlowConfig.selection``); ``tz`` comes afterwards from the mean height
 difference; CCS and SCR score the result. Failed pairs (too few shared samples,
 degenerate normal equations, no valid height sample, low or undefined scores) come back
 with ``ok = False`` and a finite pose.
@@ -125,7 +125,7 @@ class PreparedReference:
                   for f in sorted(factors, reverse=True)]
         prep = PreparedReference(sub.points_t, sub.curvature, sub.spread, sub.valid, [*levels, sub.levels[-1]],
                                  self.shape, self.m_per_px, sub.normals_map, sub.contact,
-                                 (*self.settings[:3], jacobian, tuple(sorted(factors, reverse=True))) if self.settings
+                                 (*self.settings[:4], jacobian, tuple(sorted(factors, reverse=True))) if self.settings
                                  else ())
         _check_reference_finite(prep)  # the coarse levels read the normal map around the samples
         return prep
@@ -233,6 +233,7 @@ def reference_settings(config: NormalFlowConfig) -> tuple:
     (count, rule, seed), the Jacobian and the coarse levels. Two configurations with equal
     settings prepare a frame identically (the thresholds act later)."""
     return (config.n_samples, config.selection, config.seed if config.selection == "random" else None,
+            config.sample_cell_px if config.selection == "spread" else None,
             config.jacobian, tuple(sorted(config.coarse_factors, reverse=True)))
 
 
@@ -258,7 +259,8 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     b, h, w = ref.height.shape
     s = ref.mm_per_px / 1000.0
     gen = torch.Generator().manual_seed(config.seed) if config.selection == "random" else None
-    idx, valid = select_samples(ref.curvature, ref.contact, config.n_samples, config.selection, gen)
+    idx, valid = select_samples(ref.curvature, ref.contact, config.n_samples, config.selection, gen,
+                                config.sample_cell_px)
     normals_map = ref.normals.to(dtype)
     vf = valid.to(dtype)
     points = metric_points(ref.height.to(dtype), idx, s) * vf[..., None]

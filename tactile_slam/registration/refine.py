@@ -1,7 +1,7 @@
 """Re-measuring loop factors with every contact pixel.
 
-Loop verification runs NormalFlow on the reference's ``n_samples`` (3000)
-highest-curvature contact pixels: fast, and enough to accept or refuse a pair. The few
+Loop verification runs NormalFlow on the reference's ``n_samples`` (3000) selected
+contact pixels (the highest curvature of each cell of the contact): fast, and enough to accept or refuse a pair. The few
 loops the back end accepts are worth more work: NormalFlow from that first measurement
 over *every* contact pixel (``PoseGraphConfig.refine_n_samples``) adds the low-curvature
 pixels, whose normals carry the contact's overall shape (its tilt) that the texture

@@ -9,9 +9,8 @@ from __future__ import annotations
 import numpy as np
 import torch
 
+from tactile_slam.config import SAMPLE_SELECTIONS as SELECTIONS
 from tactile_slam.registration.result import RegistrationError
-
-SELECTIONS = ("topk", "threshold", "random")
 
 
 def flat_nonzero(mask: torch.Tensor) -> torch.Tensor:
@@ -102,6 +101,54 @@ def top_k_indices(score: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tens
     return mask_to_indices(torch.zeros_like(score, dtype=torch.bool).scatter_(1, ids, vals >= 0))
 
 
+def _cell_order(cell: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
+    """Positions sorted by cell, then level, then position (a stable two-key sort):
+    ``(B, M)`` int64 cells and levels (0..65535) -> ``(B, M)`` int64. On the CPU numpy's
+    ``lexsort`` radix-sorts the 16-bit keys (about 10x torch's sort of 10,000 keys)."""
+    if cell.device.type == "cpu" and int(cell.max()) < 2**15:
+        c, q = cell.numpy().astype(np.int16), level.numpy().astype(np.uint16)
+        return torch.from_numpy(np.stack([np.lexsort((q[i], c[i])) for i in range(len(c))]).astype(np.int64))
+    return torch.sort(cell * 65536 + level, dim=1, stable=True).indices
+
+
+def spread_top_k(score: torch.Tensor, pixel: torch.Tensor, inside: torch.Tensor, width: int, cell_px: int,
+                 k: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The ``k`` highest scores spread over the contact: the image is cut into
+    ``cell_px``-square cells, each candidate is ranked within its cell by its score in
+    65,536 levels of the frame's highest (ties by index), and the ``k`` with the smallest
+    within-cell fraction ``(rank + 0.5) / count`` are taken (ties: the higher score, then
+    the lower index). Each cell thus gets a share of ``k`` proportional to its number of
+    candidates, filled by its own best scores. All candidates are taken when there are at
+    most ``k``.
+
+    Args:
+        score: ``(B, M)`` non-negative scores of the candidates.
+        pixel: ``(B, M)`` row-major pixel indices of the candidates (image width ``width``).
+        inside: ``(B, M)`` bool, False for padding.
+
+    Returns:
+        ``(pos (B, K) int64 positions into the candidates, valid (B, K) bool)``, in
+        candidate order (as :func:`top_k_indices`).
+    """
+    b, m = pixel.shape
+    if m <= k:  # every candidate is taken
+        return torch.arange(m, device=pixel.device).expand(b, m).clone(), inside.clone()
+    px = pixel.int()  # int32 division: half the time of int64's
+    row = px // width
+    cell = ((row // cell_px) * -(-width // cell_px) + (px - row * width) // cell_px).long()
+    cell = torch.where(inside, cell, cell.max() + 1)  # padding: a cell of its own, last
+    top = torch.where(inside, score, 0.0).amax(1, keepdim=True)
+    level = 65535 - (score / torch.where(top > 0, top, 1.0) * 65535).floor().clamp(0, 65535).long()  # descending
+    order = _cell_order(cell, level).to(pixel.device)
+    count = torch.zeros((b, int(cell.max()) + 1), dtype=torch.int64, device=pixel.device).scatter_add_(
+        1, cell, torch.ones_like(cell))
+    start = count.cumsum(1) - count
+    rank_sorted = torch.arange(m, device=pixel.device) - start.gather(1, cell.gather(1, order))
+    rank = torch.empty_like(rank_sorted).scatter_(1, order, rank_sorted)
+    key = torch.where(inside, 1.0 - (rank + 0.5) / count.gather(1, cell) + 1e-9 * score.double(), -1.0)
+    return top_k_indices(key, k)
+
+
 def _check_scores(score: torch.Tensor) -> None:
     """NaN would silently drop a pixel from the ranking (and Inf take its place): either
     is an input error."""
@@ -113,14 +160,21 @@ def select_samples(
     curvature: torch.Tensor,
     contact: torch.Tensor,
     n_samples: int | None,
-    rule: str = "topk",
+    rule: str = "spread",
     generator: torch.Generator | None = None,
+    cell_px: int = 16,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Reference pixels NormalFlow optimises over.
 
     Rules:
+        ``"spread"``: the ``n_samples`` contact pixels of highest |L| within
+            ``cell_px``-square cells, each cell's share proportional to its contact
+            pixels (:func:`spread_top_k`); all contact pixels when fewer;
+            deterministic. On a large contact a global top-k gathers on a few features
+            (an edge, the pips of a face) and can leave a motion weakly constrained
+            (docs/registration.md, "Samples spread over the contact").
         ``"topk"``: the ``n_samples`` contact pixels of highest |L|, ties by row-major
-            index (all contact pixels when fewer); deterministic.
+            index (all contact pixels when fewer); deterministic (method.md 4.2).
         ``"threshold"``: the public GelSLAM rule: |L| >= (n-th largest |L| over the
             image) + 1e-6 (at most n - 1 samples; none when n pixels sit at the clip).
         ``"random"``: ``n_samples`` contact pixels drawn uniformly (old NormalFlow), one
@@ -144,11 +198,14 @@ def select_samples(
         return mask_to_indices(c)
     if n_samples < 1:
         raise ValueError(f"n_samples must be >= 1 or None, got {n_samples}")
-    if rule == "topk":  # over the contact pixels only (a few thousand of the image's pixels)
+    if rule in ("topk", "spread"):  # over the contact pixels only (a few thousand of the image's pixels)
         pixel, inside = mask_to_indices(c)
         score = torch.where(inside, flat.gather(1, pixel).abs(), -1.0)
         _check_scores(score)
-        pos, valid = top_k_indices(score, n_samples)
+        if rule == "spread":
+            pos, valid = spread_top_k(score.clamp_min(0.0), pixel, inside, curvature.shape[2], cell_px, n_samples)
+        else:
+            pos, valid = top_k_indices(score, n_samples)
         return pixel.gather(1, pos), valid
     if rule == "random":  # one draw per contact pixel, not per image pixel
         pixel, inside = mask_to_indices(c)

@@ -71,6 +71,70 @@ class TestTopK:
         assert top_k_mask(score, 3).tolist() == [[True, False, True, False]]
 
 
+def _spread_reference(lap: np.ndarray, contact: np.ndarray, k: int, cell: int) -> list[int]:
+    """An independent reading of the spread rule, one frame ``(H, W)``: per cell, the
+    contact pixels by |L| in 65,536 levels of the frame's largest, descending (ties by
+    index); the ``k`` smallest ``(rank + 0.5) / count`` win, ties by the higher |L|, then
+    the lower index."""
+    h, w = lap.shape
+    top = np.abs(lap[contact]).max()
+    level = np.floor(np.abs(lap).astype(np.float32) / np.float32(top) * np.float32(65535))
+    cand = []
+    for r0 in range(0, h, cell):
+        for c0 in range(0, w, cell):
+            px = [r * w + c for r in range(r0, min(r0 + cell, h)) for c in range(c0, min(c0 + cell, w))
+                  if contact[r, c]]
+            px.sort(key=lambda p: (-level.flat[p], p))
+            cand += [((rank + 0.5) / len(px), -abs(lap.flat[p]), p) for rank, p in enumerate(px)]
+    return sorted(p for _, _, p in sorted(cand)[:k])
+
+
+class TestSpreadRule:
+    @pytest.mark.parametrize("ties", [False, True])
+    def test_matches_reference(self, device, dtype, ties):
+        lap, contact = _random_maps(h=37, w=45, dtype=dtype)
+        if ties:
+            lap = (lap * 20).round() / 20
+        for k in (1, 97, 300, 10**5):
+            idx, valid = select_samples(lap.to(device), contact.to(device), k, "spread", cell_px=8)
+            for i in range(lap.shape[0]):
+                expected = _spread_reference(lap[i].double().numpy(), contact[i].numpy(), k, 8)
+                assert idx[i][valid[i]].cpu().numpy().tolist() == expected
+
+    def test_each_cell_gets_its_share(self, device):
+        """A contact of two 16x16 cells, one of them with all the strong curvature: top-k
+        takes every sample there, spread takes half from each cell, each its strongest."""
+        lap = torch.zeros(1, 16, 32)
+        contact = torch.ones(1, 16, 32, dtype=torch.bool)
+        lap[0, :, :16] = torch.linspace(0.3, 0.6, 256).reshape(16, 16)
+        lap[0, :, 16:] = torch.linspace(0.001, 0.01, 256).reshape(16, 16)
+        top, _ = select_samples(lap.to(device), contact.to(device), 100, "topk")
+        assert bool((top.cpu() % 32 < 16).all())
+        idx, valid = select_samples(lap.to(device), contact.to(device), 100, "spread")
+        left = idx.cpu()[valid.cpu()] % 32 < 16
+        assert int(left.sum()) == 50 and int((~left).sum()) == 50
+        flat = lap.reshape(-1)
+        chosen = flat[idx.cpu()[valid.cpu()]]
+        assert float(chosen[~left].min()) >= float(torch.sort(flat.reshape(16, 32)[:, 16:].reshape(-1))[0][-50])
+
+    def test_one_cell_is_top_k_and_small_contact_is_all(self, device):
+        lap, contact = _random_maps()
+        a = select_samples(lap.to(device), contact.to(device), 300, "spread", cell_px=64)
+        b = select_samples(lap.to(device), contact.to(device), 300, "topk")
+        assert torch.equal(a[0][a[1]], b[0][b[1]])
+        idx, valid = select_samples(lap.to(device), contact.to(device), 10**6, "spread")
+        assert valid.sum(1).tolist() == contact.reshape(2, -1).sum(1).tolist()
+
+    def test_batch_equals_single_frames(self, device):
+        lap, contact = _random_maps(b=3, h=60, w=80)
+        contact[1] = False
+        contact[1, 10:20, 10:30] = True  # a much smaller contact: padding in the batch
+        idx, valid = select_samples(lap.to(device), contact.to(device), 500, "spread")
+        for i in range(3):
+            one, ok = select_samples(lap[i:i + 1].to(device), contact[i:i + 1].to(device), 500, "spread")
+            assert idx[i][valid[i]].tolist() == one[0][ok[0]].tolist()
+
+
 class TestThresholdRule:
     def test_at_most_n_minus_one_and_empty_at_clip(self, device):
         lap, contact = _random_maps()
@@ -126,7 +190,7 @@ def test_all_pixels_when_n_is_none():
     assert valid.sum(1).tolist() == contact.reshape(2, -1).sum(1).tolist()
 
 
-@pytest.mark.parametrize("rule", ["topk", "threshold"])
+@pytest.mark.parametrize("rule", ["spread", "topk", "threshold"])
 @pytest.mark.parametrize("value", [float("nan"), float("inf")])
 def test_non_finite_curvature_in_the_contact_is_an_error(device, rule, value):
     from tactile_slam.registration.result import RegistrationError

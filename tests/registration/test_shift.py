@@ -4,6 +4,7 @@ registration fallback that starts from it."""
 from __future__ import annotations
 
 import importlib
+from dataclasses import replace
 
 import pytest
 import torch
@@ -63,20 +64,23 @@ def test_shift_pairs_and_no_overlap(moved):
 def test_fallback_starts_from_the_shift_when_the_coarse_retry_fails(moved, monkeypatch):
     """A 3 mm move of a bumpy dome: from the identity the full-resolution solve and the
     coarse fallback both fail; the retry from the searched shift recovers the pose. Where
-    the first solve succeeds, no search runs."""
+    the first solve succeeds, no search runs. (With the top-k samples: spread samples let
+    the coarse fallback alone recover this move.)"""
     f = moved["bumpy"]
     calls = []
     monkeypatch.setattr(normalflow_module, "correlation_shift",
                         lambda *a, **k: calls.append(len(a[2])) or correlation_shift(*a, **k))
-    without = register(f[0:1], f[2:3], None, NormalFlowConfig(fallback_factors=(16, 4), fallback_shift_search=False))
+    cfg = NormalFlowConfig(selection="topk", fallback_factors=(16, 4))
+    without = register(f[0:1], f[2:3], None, replace(cfg, fallback_shift_search=False))
     assert not bool(without.ok[0]), "test scene: the coarse fallback alone must fail here"
     assert calls == []
-    res = register(f[0:1], f[2:3], None, NormalFlowConfig(fallback_factors=(16, 4)))
+    assert bool(register(f[0:1], f[2:3], None, replace(cfg, selection="spread", fallback_shift_search=False)).ok[0])
+    res = register(f[0:1], f[2:3], None, cfg)
     rot, trans = pose_error(res.tar_T_ref.double(), rigid(tx_mm=3.0)[None])
     assert bool(res.ok[0]) and float(rot) < 0.05 and float(trans) < 0.005, (float(rot), float(trans))
     assert calls == [1]
     small = frames(bumpy(1), [EYE, rigid(tx_mm=0.2)])
-    assert bool(register(small[0:1], small[1:2], None, NormalFlowConfig(fallback_factors=(16, 4))).ok[0])
+    assert bool(register(small[0:1], small[1:2], None, cfg).ok[0])
     assert calls == [1]
 
 

@@ -294,7 +294,8 @@ def test_coarse_fallback_that_fails_or_jumps_starts_a_new_session():
 
 def test_coarse_fallback_with_normalflow():
     """The real registrar: a 1.3 mm step between frames is beyond the full-resolution
-    basin from the identity; the 4x coarse level recovers it."""
+    basin of top-k samples from the identity; the 4x coarse level recovers it. (Samples
+    spread over the contact, the default, recover it at full resolution.)"""
     from tactile_slam.config import NormalFlowConfig
     from tactile_slam.tracking.tracker import NormalFlowRegistrar
 
@@ -302,9 +303,13 @@ def test_coarse_fallback_with_normalflow():
 
     truth = rigid(tx_mm=1.3)
     f = frames(bumpy(1), [torch.eye(4, dtype=torch.float64), truth])
-    reg = NormalFlowRegistrar(NormalFlowConfig(), TrackingConfig())
-    prep = reg.prepare(f[0:1])
     eye = torch.eye(4, dtype=torch.float64)[None]
+    spread = NormalFlowRegistrar(NormalFlowConfig(), TrackingConfig())
+    direct = spread.register(spread.prepare(f[0:1]), f[1:2], eye)
+    rot, trans = pose_error(direct.tar_T_ref, truth[None])
+    assert bool(direct.ok[0]) and float(rot) < 0.1 and float(trans) < 0.01, (float(rot), float(trans))
+    reg = NormalFlowRegistrar(NormalFlowConfig(selection="topk"), TrackingConfig())
+    prep = reg.prepare(f[0:1])
     assert not bool(reg.register(prep, f[1:2], eye).ok[0])
     res = reg.register_coarse(prep, f[1:2], eye, (4,))
     rot, trans = pose_error(res.tar_T_ref, truth[None])
