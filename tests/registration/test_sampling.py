@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 import torch
 
-from tactile_slam.registration.sampling import flat_nonzero, mask_to_indices, nonzero_2d, select_samples, top_k_mask
+from tactile_slam.registration.sampling import (_cell_order, flat_nonzero, mask_to_indices, nonzero_2d, select_samples,
+                                                top_k_mask)
 
 
 def _random_maps(b=2, h=30, w=40, seed=0, dtype=torch.float32):
@@ -124,6 +125,25 @@ class TestSpreadRule:
         assert torch.equal(a[0][a[1]], b[0][b[1]])
         idx, valid = select_samples(lap.to(device), contact.to(device), 10**6, "spread")
         assert valid.sum(1).tolist() == contact.reshape(2, -1).sum(1).tolist()
+
+    def test_torch_order_equals_numpy_radix_order(self):
+        """The stable (cell, level) order: numpy's radix sort on the CPU and torch's sort
+        elsewhere (or with 2**15 cells or more) give the same permutation."""
+        g = torch.Generator().manual_seed(5)
+        cell = torch.randint(0, 40, (3, 500), generator=g)
+        level = torch.randint(0, 8, (3, 500), generator=g)  # many ties: the position decides
+        radix = _cell_order(cell, level)
+        assert torch.equal(radix, torch.sort(cell * 65536 + level, dim=1, stable=True).indices)
+        many = cell + 2**15  # too many cells for int16: the torch path
+        assert torch.equal(_cell_order(many, level), radix)
+
+    def test_many_cells_matches_reference(self):
+        """One-pixel cells on a 200 x 200 image (40,000 cells: the torch path): every
+        contact pixel is its own cell, so the rule keeps the k first by |L| then index."""
+        lap, contact = _random_maps(b=1, h=200, w=200)
+        idx, valid = select_samples(lap, contact, 700, "spread", cell_px=1)
+        expected = _spread_reference(lap[0].double().numpy(), contact[0].numpy(), 700, 1)
+        assert idx[0][valid[0]].tolist() == expected
 
     def test_batch_equals_single_frames(self, device):
         lap, contact = _random_maps(b=3, h=60, w=80)
