@@ -143,8 +143,9 @@ class CurvatureConfig:
 
 
 JACOBIAN_KINDS = ("analytic", "autograd")
-SAMPLE_SELECTIONS = ("spread", "topk", "threshold", "random")
 """``NormalFlowConfig.jacobian`` values (``registration.jacobian``'s closed form and torch.func)."""
+SAMPLE_SELECTIONS = ("spread", "topk", "threshold", "random")
+"""``NormalFlowConfig.selection`` values (``registration.sampling.select_samples``)."""
 
 
 @dataclass

@@ -418,4 +418,3 @@ def write_overlays(calib: CalibrationSet, labels: list[PressLabel], out_dir: str
     path = out_dir / "overview.png"
     cv2.imwrite(str(path), grid)
     return path
-

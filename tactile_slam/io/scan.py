@@ -229,4 +229,3 @@ class Scan(SequenceSource):
 
     def close(self) -> None:
         self.video.close()
-

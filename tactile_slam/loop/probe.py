@@ -95,5 +95,3 @@ def best_pair(H_T_G: torch.Tensor, start_T_x: torch.Tensor, centres_x: torch.Ten
     best = ok & (score == score.max())
     flat = int(torch.where(best, d, torch.full_like(d, torch.inf)).argmin())
     return divmod(flat, Y)
-
-

@@ -321,4 +321,3 @@ class DescriptorIndex:
         votes = self.vote(query, allowed)
         ranked = sorted((kf for kf, v in votes.items() if v >= self.settings.min_votes), key=lambda i: (-votes[i], i))
         return ranked[:top]
-

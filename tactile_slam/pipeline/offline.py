@@ -284,7 +284,6 @@ class OfflinePipeline:
         self.config.save(out / "config.yaml")
         return RunResult(poses, by_group, groups, keyframes, stats)
 
-
     def _reconstruct(self, keyframes, start_T_kf, group_of_kf, kf_of, kf_T, frame_group) -> dict:
         """Mesh of the main group in the frame of its first contact frame (the frame of
         ``poses.npy``); with ``recon.all_groups`` also every other group, in the frame of

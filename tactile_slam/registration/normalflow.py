@@ -11,10 +11,10 @@ Usage::
 ``tar_T_ref`` maps a static object point from reference-sensor into target-sensor
 coordinates (metres, float64). The Gauss-Newton solve estimates
 ``(wx, wy, wz, tx, ty)`` in inverse-compositional form over reference contact pixels of
-high |curvature| spread over the contact (``NormalFlowConfig.selection``); ``tz`` comes afterwards from the mean height
-difference; CCS and SCR score the result. Failed pairs (too few shared samples,
-degenerate normal equations, no valid height sample, low or undefined scores) come back
-with ``ok = False`` and a finite pose.
+high |curvature|, spread over the contact (``NormalFlowConfig.selection``); ``tz`` comes
+afterwards from the mean height difference; CCS and SCR score the result. Failed pairs
+(too few shared samples, degenerate normal equations, no valid height sample, low or
+undefined scores) come back with ``ok = False`` and a finite pose.
 """
 
 from __future__ import annotations
@@ -230,8 +230,8 @@ def _coarse_level(normals_map, points, valid, s, factor, jacobian) -> Level:
 
 def reference_settings(config: NormalFlowConfig) -> tuple:
     """What :func:`prepare_reference` takes from a configuration: the sample selection
-    (count, rule, seed), the Jacobian and the coarse levels. Two configurations with equal
-    settings prepare a frame identically (the thresholds act later)."""
+    (count, rule, seed, cell size), the Jacobian and the coarse levels. Two configurations
+    with equal settings prepare a frame identically (the thresholds act later)."""
     return (config.n_samples, config.selection, config.seed if config.selection == "random" else None,
             config.sample_cell_px if config.selection == "spread" else None,
             config.jacobian, tuple(sorted(config.coarse_factors, reverse=True)))

@@ -169,7 +169,6 @@ class TestRealPresses:
             close += max(abs(best[1]), abs(best[2])) <= 3
         assert close >= 0.8 * len(reliable)
 
-
     # presses whose label the colour-distance peak of a single start got wrong by 9-23 px
     # under other LED gains (the old detector); the rim is the same whatever the colours
     @pytest.mark.parametrize("reldir", ["6.310mm/0", "6.310mm/22", "6.310mm/33", "6.310mm/38"])
@@ -296,8 +295,6 @@ class TestLabelPresses:
             label_presses(calib, MM_PER_PX, 2.0, {"1.000mm/0": PressLabel("1.000mm/0", 1, 2, 3)})
 
     def test_press_without_contact(self, synthetic_calib):
-        import cv2
-
         cv2.imwrite(str(synthetic_calib / "9.500mm/0/gelsight.png"),
                     render(synthetic_background(), np.zeros((240, 320, 2)), seed=9))
         calib = load_calibration_set(synthetic_calib)
@@ -308,8 +305,6 @@ class TestLabelPresses:
         assert label_presses(calib, MM_PER_PX, 2.0, {"9.500mm/0": given})[4] is given
 
     def test_overlays(self, synthetic_calib, tmp_path):
-        import cv2
-
         calib = load_calibration_set(synthetic_calib)
         labels = label_presses(calib, MM_PER_PX, 2.0)
         labels[0] = PressLabel(labels[0].reldir, labels[0].cx, labels[0].cy, labels[0].radius, False, "test")
