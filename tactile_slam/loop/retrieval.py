@@ -247,19 +247,21 @@ class DescriptorIndex:
     def _live(self, level: _Level) -> int:
         return len(level.owner) - level.dead
 
-    def _build(self, ids) -> _Level:
-        ids = sorted(ids)
+    def _stack(self, ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+        """The descriptors of ``ids`` in one array and the id owning each row:
+        ``((n, 128) float32, (n,) int64)``."""
         blocks = [self._blocks[i] for i in ids]
         desc = np.concatenate(blocks) if blocks else np.zeros((0, 128), np.float32)
-        owner = np.repeat(np.asarray(ids, np.int64), [len(b) for b in blocks])
+        return desc, np.repeat(np.asarray(ids, np.int64), [len(b) for b in blocks])
+
+    def _build(self, ids) -> _Level:
+        ids = sorted(ids)
+        desc, owner = self._stack(ids)
         return _Level(set(ids), owner, cv2.flann_Index(desc, dict(algorithm=1, trees=self.settings.trees)))
 
     def _tail_pool(self) -> tuple[np.ndarray, np.ndarray]:
         if self._tail_cache is None:
-            blocks = [self._blocks[i] for i in self._tail]
-            desc = np.concatenate(blocks) if blocks else np.zeros((0, 128), np.float32)
-            owner = np.repeat(np.asarray(self._tail, np.int64), [len(b) for b in blocks])
-            self._tail_cache = (desc, owner)
+            self._tail_cache = self._stack(self._tail)
         return self._tail_cache
 
     def neighbours(self, query: torch.Tensor | np.ndarray) -> np.ndarray:

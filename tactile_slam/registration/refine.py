@@ -1,14 +1,15 @@
 """Re-measuring loop factors with every contact pixel.
 
 Loop verification runs NormalFlow on the reference's ``n_samples`` (3000) selected
-contact pixels (the highest curvature of each cell of the contact): fast, and enough to accept or refuse a pair. The few
-loops the back end accepts are worth more work: NormalFlow from that first measurement
-over *every* contact pixel (``PoseGraphConfig.refine_n_samples``) adds the low-curvature
-pixels, whose normals carry the contact's overall shape (its tilt) that the texture
-pixels constrain poorly. On the loops of the simulated tracking episodes this cut the
-rotation error of a loop from 0.38 to 0.14 deg (seed) and from 1.02 to 0.62 deg (shell).
-Odometry edges are not re-measured: on the knurled and dice episodes that made the
-trajectories worse (docs/posegraph.md has the measurements).
+contact pixels (the highest curvature of each cell of the contact): fast, and enough to
+accept or refuse a pair. The few loops the back end accepts are worth more work:
+NormalFlow from that first measurement over *every* contact pixel
+(``PoseGraphConfig.refine_n_samples``) adds the low-curvature pixels, whose normals
+carry the contact's overall shape (its tilt) that the texture pixels constrain poorly.
+On the loops of the simulated tracking episodes this cut the rotation error of a loop
+from 0.38 to 0.14 deg (seed) and from 1.02 to 0.62 deg (shell). Odometry edges are not
+re-measured: on the knurled and dice episodes that made the trajectories worse
+(docs/posegraph.md has the measurements).
 """
 
 from __future__ import annotations

@@ -101,13 +101,14 @@ def top_k_indices(score: torch.Tensor, k: int) -> tuple[torch.Tensor, torch.Tens
     return mask_to_indices(torch.zeros_like(score, dtype=torch.bool).scatter_(1, ids, vals >= 0))
 
 
-def _cell_order(cell: torch.Tensor, level: torch.Tensor) -> torch.Tensor:
+def _cell_order(cell: torch.Tensor, level: torch.Tensor, n_cells: int) -> torch.Tensor:
     """Positions sorted by cell, then level, then position (a stable two-key sort):
-    ``(B, M)`` int64 cells and levels (0..65535) -> ``(B, M)`` int64. On the CPU numpy's
-    ``lexsort`` radix-sorts the 16-bit keys (about 10x torch's sort of 10,000 keys)."""
-    if cell.device.type == "cpu" and int(cell.max()) < 2**15:
-        c, q = cell.numpy().astype(np.int16), level.numpy().astype(np.uint16)
-        return torch.from_numpy(np.stack([np.lexsort((q[i], c[i])) for i in range(len(c))]).astype(np.int64))
+    ``(B, M)`` int64 cells (``0 .. n_cells - 1``) and levels (0..65535) -> ``(B, M)``
+    int64. On the CPU numpy's ``lexsort`` radix-sorts the 16-bit keys, row by row (about
+    10x torch's sort of 10,000 keys)."""
+    if cell.device.type == "cpu" and n_cells <= 2**15:
+        return torch.from_numpy(np.lexsort((level.numpy().astype(np.uint16), cell.numpy().astype(np.int16)))
+                                .astype(np.int64))
     return torch.sort(cell * 65536 + level, dim=1, stable=True).indices
 
 
@@ -136,11 +137,12 @@ def spread_top_k(score: torch.Tensor, pixel: torch.Tensor, inside: torch.Tensor,
     px = pixel.int()  # int32 division: half the time of int64's
     row = px // width
     cell = ((row // cell_px) * -(-width // cell_px) + (px - row * width) // cell_px).long()
-    cell = torch.where(inside, cell, cell.max() + 1)  # padding: a cell of its own, last
+    pad = int(cell.max()) + 1
+    cell = torch.where(inside, cell, pad)  # padding: a cell of its own, last
     top = torch.where(inside, score, 0.0).amax(1, keepdim=True)
     level = 65535 - (score / torch.where(top > 0, top, 1.0) * 65535).floor().clamp(0, 65535).long()  # descending
-    order = _cell_order(cell, level).to(pixel.device)
-    count = torch.zeros((b, int(cell.max()) + 1), dtype=torch.int64, device=pixel.device).scatter_add_(
+    order = _cell_order(cell, level, pad + 1).to(pixel.device)
+    count = torch.zeros((b, pad + 1), dtype=torch.int64, device=pixel.device).scatter_add_(
         1, cell, torch.ones_like(cell))
     start = count.cumsum(1) - count
     rank_sorted = torch.arange(m, device=pixel.device) - start.gather(1, cell.gather(1, order))

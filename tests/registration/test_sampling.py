@@ -132,10 +132,10 @@ class TestSpreadRule:
         g = torch.Generator().manual_seed(5)
         cell = torch.randint(0, 40, (3, 500), generator=g)
         level = torch.randint(0, 8, (3, 500), generator=g)  # many ties: the position decides
-        radix = _cell_order(cell, level)
+        radix = _cell_order(cell, level, 40)
         assert torch.equal(radix, torch.sort(cell * 65536 + level, dim=1, stable=True).indices)
         many = cell + 2**15  # too many cells for int16: the torch path
-        assert torch.equal(_cell_order(many, level), radix)
+        assert torch.equal(_cell_order(many, level, 40 + 2**15), radix)
 
     def test_many_cells_matches_reference(self):
         """One-pixel cells on a 200 x 200 image (40,000 cells: the torch path): every
@@ -144,6 +144,16 @@ class TestSpreadRule:
         idx, valid = select_samples(lap, contact, 700, "spread", cell_px=1)
         expected = _spread_reference(lap[0].double().numpy(), contact[0].numpy(), 700, 1)
         assert idx[0][valid[0]].tolist() == expected
+
+    def test_no_contact_selects_nothing(self, device):
+        """A frame without contact, alone or beside one with contact: no valid sample, no
+        error (the registration then reports too few shared samples)."""
+        lap, contact = _random_maps(b=2, h=60, w=80)
+        contact[0] = False
+        idx, valid = select_samples(lap[:1].to(device), contact[:1].to(device), 300, "spread")
+        assert not bool(valid.any())
+        idx, valid = select_samples(lap.to(device), contact.to(device), 300, "spread")
+        assert not bool(valid[0].any()) and int(valid[1].sum()) == 300
 
     def test_batch_equals_single_frames(self, device):
         lap, contact = _random_maps(b=3, h=60, w=80)
