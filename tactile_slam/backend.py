@@ -75,6 +75,7 @@ class BackEndStats:
     probes: int = 0  # predicted pairs verified for loops waiting between groups
     probe_loops: int = 0  # of them, verified (they still pass the loop gate like any loop)
     probes_ambiguous: int = 0  # verified, but an alternative start verified elsewhere too
+    tilted: int = 0  # loops between decoded keyframes held beyond loop.decoded_max_tilt_deg
     time_refine: list[float] = field(default_factory=list)
     time_loop_detection: list[float] = field(default_factory=list)
     time_pose_graph: list[float] = field(default_factory=list)
@@ -123,6 +124,8 @@ class BackEnd:
             raise ValueError(f"posegraph.refine_n_samples must be >= 1 or None, got {n}")
         if config.loop.probes < 0:
             raise ValueError(f"loop.probes must be >= 0, got {config.loop.probes}")
+        if config.loop.decoded_max_tilt_deg is not None and not config.loop.decoded_max_tilt_deg >= 0.0:
+            raise ValueError(f"loop.decoded_max_tilt_deg must be >= 0 or None, got {config.loop.decoded_max_tilt_deg}")
         if not (config.loop.best_nearby_rot_deg >= 0.0 and config.loop.best_nearby_trans_mm >= 0.0):
             raise ValueError(f"loop.best_nearby_rot_deg and best_nearby_trans_mm must be >= 0, got "
                              f"{config.loop.best_nearby_rot_deg} and {config.loop.best_nearby_trans_mm}")
@@ -138,6 +141,7 @@ class BackEnd:
         self.gate = (LoopGate(drift_model(config), config.loop.merge_min_pairs, config.loop.doubt_factor,
                                config.loop.merge_distinct, config.loop.merge_cycles, config.loop.trust_repetitive)
                      if config.loop.consistency else None)
+        self._tilted: list[Loop] = []  # verified loops held by the decoded tilt limit
         self._last_in_session: dict[int, int] = {}
         self._probed: set[tuple[int, int]] = set()
         self._group_view = _KeyframeView(self.keyframes, self.sessions.group_of)  # -> group id
@@ -183,10 +187,11 @@ class BackEnd:
         if self.detector is not None:
             if detect:
                 eligible = [k for k in self.coverage.active if k in self.detector]
-                loops = self.detector.detect(kf, eligible, self._group_view, self._pose_view, self.keyframes)
+                loops = self._within_tilt(
+                    self.detector.detect(kf, eligible, self._group_view, self._pose_view, self.keyframes))
             self.detector.add(kf)
             loops = self._settle(kf, loops)
-            loops = loops + self._probe(loops)
+            loops = loops + self._within_tilt(self._probe(loops))
             loops = [lp if self._depth_known(lp.ref_id, lp.tar_id) else replace(lp, depth_known=False) for lp in loops]
         t1 = time.perf_counter()
         self.stats.time_loop_detection.append(t1 - t0)
@@ -233,6 +238,22 @@ class BackEnd:
                 self.detector.remove(kf.id)
         self.stats.time_coverage.append(time.perf_counter() - t2)
         return loops
+
+    def _within_tilt(self, loops: list[Loop]) -> list[Loop]:
+        """``loops`` without those between keyframes decoded from images (either one) whose
+        measured out-of-plane rotation exceeds ``loop.decoded_max_tilt_deg``: the decoder's
+        flattening of steep slopes under-reads a tilt in proportion to it, so such a loop is
+        the right place at the wrong angle (docs/loops.md, "Tilted loops from video"). They
+        are kept for :meth:`held_loops` (reason ``tilted``)."""
+        limit = self.config.loop.decoded_max_tilt_deg
+        if limit is None or not loops:
+            return loops
+        keep = []
+        for lp in loops:
+            decoded = self.keyframes[lp.ref_id].decoded or self.keyframes[lp.tar_id].decoded
+            (keep if not decoded or float(se3.tilt_deg(lp.ref_T_tar)) <= limit else self._tilted).append(lp)
+        self.stats.tilted = len(self._tilted)
+        return keep
 
     def _depth_known(self, i: int, j: int) -> bool:
         """Whether both keyframes' heights have a known zero (:attr:`Keyframe.depth_known`)."""
@@ -434,6 +455,7 @@ class BackEnd:
             "probes": st.probes,
             "probe_loops": st.probe_loops,
             "probes_ambiguous": st.probes_ambiguous,
+            "tilted_loops": st.tilted,
             "timing_ms_per_keyframe": {"loop_detection": med(st.time_loop_detection),
                                        "pose_graph": med(st.time_pose_graph),
                                        "coverage": med(st.time_coverage),
@@ -442,9 +464,10 @@ class BackEnd:
 
     def held_loops(self) -> list[dict]:
         """Every verified loop that is not in the graph, JSON-ready (:meth:`Loop.to_dict`)
-        with its ``reason`` (:meth:`~tactile_slam.loop.consistency.LoopGate.held`); empty
-        without the gate (``loop.consistency: false`` accepts every verified loop)."""
-        held = self.gate.held() if self.gate is not None else []
+        with its ``reason``: ``tilted`` (:meth:`_within_tilt`), then the gate's
+        (:meth:`~tactile_slam.loop.consistency.LoopGate.held`; without the gate,
+        ``loop.consistency: false``, every other verified loop is accepted)."""
+        held = [(loop, "tilted") for loop in self._tilted] + (self.gate.held() if self.gate is not None else [])
         return [loop.to_dict() | {"reason": reason} for loop, reason in held]
 
     def write(self, out_dir: Path) -> None:

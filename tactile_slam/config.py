@@ -351,6 +351,15 @@ class LoopConfig:
     # keyframe pair verified by NormalFlow, a second query for the gate; joins more sessions
     # on asymmetric objects, confirms false loops on symmetric ones (docs/loops.md); 0: off
     probes: int = 0
+    # loops between keyframes decoded from images (Frame.decoded) whose measured relative
+    # out-of-plane rotation (the angle between the two sensor axes) exceeds this are held
+    # ("tilted" in loops_held.json): a decoder that returns a fraction g of a slope
+    # under-reads a tilt by about (1 - g) of it, and the shipped model's gain on its held-out
+    # presses falls to 0.818 at the steepest slopes they hold (0.5-0.6), so past
+    # 1 deg / (1 - 0.818) = 5.5 deg such a loop on a steep surface is off by more than the
+    # 1 deg a correct loop may be (docs/loops.md, "Tilted loops from video"); None: no
+    # limit. Gradients given as input are not limited.
+    decoded_max_tilt_deg: float | None = 5.5
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
     coverage_depth_gate_mm: float | None = None  # count overlap only within this depth

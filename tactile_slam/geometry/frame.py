@@ -23,6 +23,9 @@ class InputError(ValueError):
     """An input frame or sequence is unusable (wrong size, NaN, empty, ...)."""
 
 
+_SCALARS = ("mm_per_px", "decoded")  # Frame's fields that are not per-frame tensors
+
+
 @dataclass
 class Frame:
     """Geometry of ``B`` tactile frames.
@@ -42,6 +45,9 @@ class Frame:
         index: ``(B,)`` int64 video index (``-1`` if unknown).
         timestamp: ``(B,)`` float64 seconds (``nan`` if unknown).
         mm_per_px: sensor scale.
+        decoded: whether the gradients were decoded from images by a calibration model
+            (:meth:`FrameBuilder.from_bgr`), and so carry its flattening of steep slopes
+            (docs/calibration.md, "Gain by slope"); False for gradients given as input.
     """
 
     gradients: torch.Tensor | None
@@ -54,6 +60,7 @@ class Frame:
     index: torch.Tensor
     timestamp: torch.Tensor
     mm_per_px: float
+    decoded: bool = False
 
     def __len__(self) -> int:
         return self.height.shape[0]
@@ -68,7 +75,7 @@ class Frame:
 
     def _map(self, fn) -> "Frame":
         """``fn`` applied to every tensor (absent gradients stay ``None``)."""
-        kw = {f.name: getattr(self, f.name) for f in fields(self) if f.name != "mm_per_px"}
+        kw = {f.name: getattr(self, f.name) for f in fields(self) if f.name not in _SCALARS}
         return replace(self, **{k: None if v is None else fn(v) for k, v in kw.items()})
 
     def __getitem__(self, i: int | slice | torch.Tensor) -> "Frame":
@@ -87,15 +94,16 @@ class Frame:
 
     @staticmethod
     def cat(frames: list["Frame"]) -> "Frame":
-        """One batch of ``frames``; its gradients are ``None`` if any frame has none."""
+        """One batch of ``frames``; its gradients are ``None`` if any frame has none, and it
+        is :attr:`decoded` if any frame is."""
         if not frames:
             raise InputError("cannot concatenate an empty list of frames")
         kw = {}
         for f in fields(Frame):
-            if f.name != "mm_per_px":
+            if f.name not in _SCALARS:
                 parts = [getattr(fr, f.name) for fr in frames]
                 kw[f.name] = None if any(p is None for p in parts) else torch.cat(parts)
-        return Frame(mm_per_px=frames[0].mm_per_px, **kw)
+        return Frame(mm_per_px=frames[0].mm_per_px, decoded=any(fr.decoded for fr in frames), **kw)
 
 
 @dataclass
@@ -137,6 +145,10 @@ class CroppedFrame:
     @property
     def mm_per_px(self) -> float:
         return self.box.mm_per_px
+
+    @property
+    def decoded(self) -> bool:
+        return self.box.decoded
 
     def expand(self) -> Frame:
         """The full-size :class:`Frame` (new tensors; gradients ``None``)."""
@@ -266,7 +278,8 @@ def _paste(parts: list[Frame | CroppedFrame], size: tuple[int, int], origins: to
                 curvature=torch.zeros((n, h, w), dtype=first.curvature.dtype, device=dev),
                 in_contact=torch.cat([m.in_contact for m in maps]),
                 depth_known=torch.cat([m.depth_known for m in maps]), index=torch.cat([m.index for m in maps]),
-                timestamp=torch.cat([m.timestamp for m in maps]), mm_per_px=first.mm_per_px)
+                timestamp=torch.cat([m.timestamp for m in maps]), mm_per_px=first.mm_per_px,
+                decoded=any(m.decoded for m in maps))
     out.normals[..., 2] = 1.0
     i = 0
     for p, mp in zip(parts, maps):
@@ -439,7 +452,8 @@ class FrameBuilder:
         colour = colour_mask(
             dist, cfg.contact.color_dist_threshold, cfg.contact.dilate, cfg.contact.erode, cfg.contact.fill_holes
         )
-        return self._finish(gradients, colour, dilate(colour, cfg.contact.dilate), None, index, timestamp)
+        return replace(self._finish(gradients, colour, dilate(colour, cfg.contact.dilate), None, index, timestamp),
+                       decoded=True)
 
     def from_gradients(
         self,

@@ -112,6 +112,7 @@ class PackedKeyframe:
     in_contact: bool
     depth_known: bool
     mm_per_px: float
+    decoded: bool
     top: int
     left: int
     full_shape: tuple[int, int]
@@ -131,7 +132,7 @@ def pack_keyframe(kf: Keyframe) -> PackedKeyframe:
     buf[5] = box.contact[0]
     return PackedKeyframe(kf.id, kf.session, kf.new_session, kf.prev_T_kf.cpu().numpy().copy(),
                           int(box.index[0]), float(box.timestamp[0]), bool(box.in_contact[0]), bool(box.depth_known[0]),
-                          box.mm_per_px,
+                          box.mm_per_px, box.decoded,
                           crop.top, crop.left, tuple(crop.full_shape), buf)
 
 
@@ -150,6 +151,7 @@ def unpack_keyframe(p: PackedKeyframe) -> Keyframe:
         index=torch.tensor([p.index], dtype=torch.int64),
         timestamp=torch.tensor([p.timestamp], dtype=torch.float64),
         mm_per_px=p.mm_per_px,
+        decoded=p.decoded,
     )
     crop = CroppedFrame(box=box, top=p.top, left=p.left, full_shape=p.full_shape)
     return Keyframe(p.id, p.session, crop, p.new_session, torch.as_tensor(p.prev_T_kf, dtype=torch.float64))

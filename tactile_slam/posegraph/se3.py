@@ -78,6 +78,13 @@ def inverse(T: torch.Tensor) -> torch.Tensor:
     return torch.cat([torch.cat([Rt, -(Rt @ T[..., :3, 3:])], -1), T[..., 3:, :]], -2)
 
 
+def tilt_deg(a_T_b: torch.Tensor) -> torch.Tensor:
+    """Out-of-plane part of relative poses ``(..., 4, 4)``: the angle in degrees between
+    the two frames' z axes (the sensor axis), ``(...)``; a turn about z alone has none."""
+    cos = a_T_b[..., 2, 2].clamp(-1.0, 1.0)
+    return torch.rad2deg(torch.arccos(cos))
+
+
 def shifts_xy(distance_m: float) -> torch.Tensor:
     """Translations by ``distance_m`` along +x, -x, +y and -y: ``(4, 4, 4)`` float64 (the
     nearby starts of the tracker's keyframe check and of the loop ambiguity check)."""

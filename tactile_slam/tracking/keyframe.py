@@ -66,6 +66,11 @@ class Keyframe:
         return bool(self._stored.depth_known[0])
 
     @property
+    def decoded(self) -> bool:
+        """Whether its gradients were decoded from an image (:attr:`Frame.decoded`)."""
+        return self.maps.decoded
+
+    @property
     def has_contact(self) -> bool:
         return bool(self._stored.contact.any())
 

@@ -183,6 +183,7 @@ class TestRealPresses:
         single = fb.from_bgr(imgs[1:2])
         torch.testing.assert_close(batch[1].gradients, single.gradients)
         assert torch.equal(batch[1].contact, single.contact)
+        assert batch.decoded and batch[1].decoded and single.decoded  # from images: the decoder's slopes
 
     def test_mlp_skip_barely_changes_geometry(self, real):
         """Skipping unchanged pixels must not move the contact or the depth."""
@@ -431,6 +432,12 @@ class TestCropToContact:
         for name in ("height", "contact", "normals", "curvature", "in_contact", "depth_known", "index", "timestamp"):
             assert torch.equal(getattr(mixed, name), getattr(want, name)), name
         assert torch.equal(full_batch([a, c]).gradients, Frame.cat([a, c]).gradients)  # all full: Frame.cat
+        # decoded (from images) survives cropping and pasting, and marks a batch holding any such frame
+        assert not mixed.decoded and not a.decoded
+        crop_d = crop_to_contact(replace(b, decoded=True))
+        assert crop_d.decoded and crop_d.expand().decoded
+        assert full_batch([a, crop_d]).decoded and Frame.cat([replace(a, decoded=True), c]).decoded
+        assert replace(a, decoded=True)[0].decoded and replace(a, decoded=True).clone().to(device).decoded
         with pytest.raises(InputError, match="empty"):
             full_batch([])
         with pytest.raises(InputError, match="different sizes"):

@@ -11,15 +11,17 @@ from tactile_slam.tracking.keyframe import Keyframe
 from tests.registration.surfaces import frames, rigid, textured
 
 
-def revisit_keyframes(slope_noise: float = 0.0) -> tuple[list[Keyframe], torch.Tensor]:
-    """Keyframe 0, keyframe 1 moved away, keyframe 2 back near 0 (a loop to 0), with true
-    odometry; slopes carry i.i.d. noise of ``slope_noise`` (seeded).
+def revisit_keyframes(slope_noise: float = 0.0, tilt_deg: float = 1.5) -> tuple[list[Keyframe], torch.Tensor]:
+    """Keyframe 0, keyframe 1 moved away, keyframe 2 back near 0 (a loop to 0) and tilted
+    from it by ``tilt_deg`` about x, with true odometry; slopes carry i.i.d. noise of
+    ``slope_noise`` (seeded).
 
     Returns:
         ``(keyframes, kf0_T)``: ``kf0_T`` ``(3, 4, 4)`` float64 each keyframe's true pose in
         keyframe 0's frame (metres).
     """
-    views = [torch.eye(4, dtype=torch.float64), rigid(rz_deg=8.0, tx_mm=1.5), rigid(rx_deg=1.5, rz_deg=3.0, ty_mm=0.3)]
+    views = [torch.eye(4, dtype=torch.float64), rigid(rz_deg=8.0, tx_mm=1.5),
+             rigid(rx_deg=tilt_deg, rz_deg=3.0, ty_mm=0.3)]
     f = frames(textured(5), views)
     if slope_noise:
         noise = slope_noise * torch.randn(f.gradients.shape, generator=torch.Generator().manual_seed(1))

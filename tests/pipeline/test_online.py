@@ -318,6 +318,9 @@ def test_pack_round_trip_one_shared_buffer(dtype):
     assert back.depth_known and kf.depth_known
     unknown = Keyframe(4, 1, replace(kf.frame, depth_known=torch.tensor([False])), False, kf.prev_T_kf)
     assert not unpack_keyframe(pack_keyframe(unknown)).depth_known
+    assert not back.decoded
+    decoded = Keyframe(5, 1, replace(kf.frame, decoded=True), False, kf.prev_T_kf)
+    assert unpack_keyframe(pack_keyframe(decoded)).decoded
     with pytest.raises(ValueError, match="one frame"):
         pack_keyframe(Keyframe(0, 0, kf.frame.cat([kf.frame, kf.frame]), True, kf.prev_T_kf))
 

@@ -1,0 +1,90 @@
+"""Loops between keyframes decoded from images, far out of plane from each other, are held:
+the decoder's flattening of steep slopes under-reads such a tilt (``loop.decoded_max_tilt_deg``)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+
+import pytest
+import torch
+
+from tactile_slam.backend import BackEnd
+from tactile_slam.config import Config
+from tactile_slam.posegraph import se3
+from tactile_slam.tracking.keyframe import Keyframe
+from tests.loop.revisit import revisit_keyframes
+from tests.registration.surfaces import rigid
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_tilt_deg_is_the_angle_between_the_sensor_axes(dtype):
+    T = torch.stack([rigid(rx_deg=20.0), rigid(ry_deg=-7.0, tx_mm=3.0), rigid(rz_deg=90.0),
+                     rigid(rx_deg=12.0, rz_deg=40.0), rigid(rx_deg=180.0)]).to(dtype)
+    z = T[:, :3, 2]  # the second frame's z axis in the first frame
+    want = torch.rad2deg(torch.arccos(z[:, 2].clamp(-1, 1)))
+    got = se3.tilt_deg(T)
+    assert got.shape == (5,) and got.dtype == dtype
+    torch.testing.assert_close(got, want)
+    torch.testing.assert_close(got[:4].double(), torch.tensor([20.0, 7.0, 0.0, 12.0], dtype=torch.float64),
+                               atol=1e-4, rtol=0)
+    torch.testing.assert_close(se3.tilt_deg(se3.inverse(T)), got)  # the same either way round
+    assert float(se3.tilt_deg(T[4])) == pytest.approx(180.0)
+
+
+def _decoded(kfs: list[Keyframe]) -> list[Keyframe]:
+    return [Keyframe(k.id, k.session, replace(k.frame, decoded=True), k.new_session, k.prev_T_kf) for k in kfs]
+
+
+def _run(kfs: list[Keyframe], **loop) -> BackEnd:
+    """The keyframes through a back end with the default config, ``loop`` settings replaced."""
+    cfg = Config()
+    cfg.loop = replace(cfg.loop, **loop)
+    be = BackEnd(cfg)
+    for k in kfs:
+        be.add(k)
+    return be
+
+
+@pytest.fixture(scope="module")
+def tilted():
+    """The revisit keyframes with keyframe 2 tilted 20 deg from keyframe 0."""
+    return revisit_keyframes(tilt_deg=20.0)
+
+
+def test_tilted_loop_from_gradients_is_accepted(tilted):
+    kfs, _ = tilted
+    be = _run(kfs)
+    assert [(lp.ref_id, lp.tar_id) for lp in be.loops] == [(0, 2)]
+    assert float(se3.tilt_deg(be.loops[0].ref_T_tar)) == pytest.approx(20.0, abs=0.1)
+    assert be.summary()["tilted_loops"] == 0 and be.held_loops() == []
+
+
+def test_tilted_loop_from_images_is_held(tilted, tmp_path):
+    kfs, _ = tilted
+    be = _run(_decoded(kfs))
+    assert be.loops == [] and be.summary()["tilted_loops"] == 1
+    (held,) = be.held_loops()
+    assert held["reason"] == "tilted" and (held["ref_id"], held["tar_id"]) == (0, 2)
+    be.write(tmp_path)
+    assert [h["reason"] for h in json.loads((tmp_path / "loops_held.json").read_text())] == ["tilted"]
+    # keyframe 2 is still in the map, through its odometry
+    assert set(be.keyframes) == {0, 1, 2} and be.group[2] == be.group[0]
+    # one decoded keyframe is enough; no limit lets it in; a limit above the tilt too
+    assert Config().loop.decoded_max_tilt_deg < 20.0
+    assert _run(kfs[:2] + _decoded(kfs[2:])).loops == []
+    assert len(_run(_decoded(kfs), decoded_max_tilt_deg=None).loops) == 1
+    assert len(_run(_decoded(kfs), decoded_max_tilt_deg=25.0).loops) == 1
+
+
+def test_small_tilt_from_images_is_accepted():
+    kfs, _ = revisit_keyframes()  # 1.5 deg
+    be = _run(_decoded(kfs))
+    assert [(lp.ref_id, lp.tar_id) for lp in be.loops] == [(0, 2)] and be.summary()["tilted_loops"] == 0
+
+
+def test_negative_limit_is_refused():
+    cfg = Config()
+    cfg.loop.decoded_max_tilt_deg = -1.0
+    with pytest.raises(ValueError, match="decoded_max_tilt_deg"):
+        BackEnd(cfg)
