@@ -246,6 +246,13 @@ class TrackingConfig:
     # previous frame, which accepts real fast motion at the cost of a keyframe; None disables
     max_deg_per_s: float | None = 125.0  # 5 deg per frame at 25 fps
     max_mm_per_s: float | None = 25.0  # 1 mm per frame at 25 fps
+    # frames decoded from images (Frame.decoded): a registration against an older keyframe
+    # more than this out of plane from it counts as failed, so the lazy rule makes the
+    # previous frame a keyframe. The decoder under-reads a tilt by about (1 - gain) of it,
+    # and the gain falls to 0.818 at the calibration presses' steepest slopes: 1 deg at
+    # 5.5 deg (the same bound as loop.decoded_max_tilt_deg; docs/benchmarks.md, "Keyframes
+    # from video"); None: no limit. Gradients given as input are not limited.
+    decoded_max_tilt_deg: float | None = 5.5
     # keyframe edges (docs/benchmarks.md, "Keyframe edges"): a new keyframe's pose in the
     # previous one is registered again from starts shifted this far along +-x and +-y, and
     # a start whose result verifies with a CCS higher by more than keyframe_near_margin,

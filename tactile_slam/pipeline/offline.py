@@ -85,7 +85,8 @@ def tracker_counts(tracker) -> dict:
     return {"implausible_motions": getattr(tracker, "implausible", 0),
             "moved_keyframe_edges": getattr(tracker, "moved_edges", 0),
             "coarse_rescues": getattr(tracker, "coarse_rescues", 0),
-            "registration_breaks": getattr(tracker, "registration_breaks", 0)}
+            "registration_breaks": getattr(tracker, "registration_breaks", 0),
+            "tilted_registrations": getattr(tracker, "tilted", 0)}
 
 
 class OfflinePipeline:

@@ -8,6 +8,11 @@ texture NormalFlow can converge to a wrong alignment that the scores cannot tell
 and the lazy rule's retry from the previous frame recovers; a legitimately fast motion is
 accepted by that retry and only costs a keyframe (docs/benchmarks.md).
 
+For frames decoded from images the same holds for a registration more than
+``tracking.decoded_max_tilt_deg`` out of plane from its keyframe: the decoder flattens steep
+slopes, so a long out-of-plane baseline is measured short (docs/benchmarks.md, "Keyframes
+from video").
+
 A new keyframe's pose in the previous keyframe (the odometry edge of the pose graph) is
 registered again, in one batch, from starts shifted by ``tracking.keyframe_near_mm`` along
 +-x and +-y; a verified result whose CCS beats the tracked one by more than
@@ -156,7 +161,7 @@ class Tracker:
             raise ValueError(f"tracking.init must be one of {INIT_MODES}, got {config.init!r}")
         if config.keyframe_edge not in EDGE_MODES:
             raise ValueError(f"tracking.keyframe_edge must be one of {EDGE_MODES}, got {config.keyframe_edge!r}")
-        for name in ("max_deg_per_s", "max_mm_per_s", "keyframe_near_mm"):
+        for name in ("max_deg_per_s", "max_mm_per_s", "keyframe_near_mm", "decoded_max_tilt_deg"):
             v = getattr(config, name)
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise ValueError(f"tracking.{name} must be a positive number or None, got {v!r}")
@@ -186,6 +191,7 @@ class Tracker:
         self.moved_edges = 0  # keyframe edges replaced by a better-scoring nearby alignment
         self.coarse_rescues = 0  # frames kept in their session by the coarse fallback
         self.registration_breaks = 0  # sessions started inside a contact: registration failed
+        self.tilted = 0  # registrations of decoded frames refused for their tilt from the keyframe
 
     # ----------------------------------------------------------------- helpers
     def _make_keyframe(self, frame: Frame, new_session: bool, prev_T_kf: torch.Tensor) -> Keyframe:
@@ -287,7 +293,8 @@ class Tracker:
         res = self._register(frame, self._init_guess())
         if bool(res.ok):
             kf_T_frame = _kf_T_frame(res)
-            if self.prev_is_keyframe or self._continuous(frame, kf_T_frame):
+            if self.prev_is_keyframe or (self._continuous(frame, kf_T_frame)
+                                         and self._within_tilt(frame, kf_T_frame)):
                 return self._tracked(frame, res, kf_T_frame, [])
         if self.prev_is_keyframe:
             res = self._coarse(frame)
@@ -357,6 +364,16 @@ class Tracker:
         ok = (c.max_deg_per_s is None or float(rot) <= c.max_deg_per_s * dt) and \
             (c.max_mm_per_s is None or float(trans) <= c.max_mm_per_s * dt)
         self.implausible += not ok
+        return ok
+
+    def _within_tilt(self, frame: Frame, kf_T_frame: torch.Tensor) -> bool:
+        """Whether a frame decoded from an image lies within ``tracking.decoded_max_tilt_deg``
+        of its (older) keyframe out of plane; gradients given as input always do. A refusal
+        makes the previous frame the keyframe (the lazy rule): the decoder under-reads
+        tilts in proportion to them, so long out-of-plane baselines are measured short."""
+        limit = self.config.decoded_max_tilt_deg
+        ok = limit is None or not frame.decoded or float(se3.tilt_deg(kf_T_frame)) <= limit
+        self.tilted += not ok
         return ok
 
     def _new_session(self, frame: Frame, broke: bool = False) -> Keyframe:

@@ -9,12 +9,14 @@ must follow method.md section 5.
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
 from tactile_slam.config import TrackingConfig
 from tactile_slam.geometry.frame import CroppedFrame, Frame
+from tactile_slam.posegraph import se3
 from tactile_slam.registration.result import RegistrationError, RegistrationResult, pose_error
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
 from tactile_slam.tracking.tracker import Tracker
@@ -401,6 +403,8 @@ def test_bad_config_and_batch():
             Tracker(TrackingConfig(max_deg_per_s=bad), ScriptedRegistrar(lambda r, t: False))
         with pytest.raises(ValueError, match="max_mm_per_s"):
             Tracker(TrackingConfig(max_mm_per_s=bad), ScriptedRegistrar(lambda r, t: False))
+        with pytest.raises(ValueError, match="decoded_max_tilt_deg"):
+            Tracker(TrackingConfig(decoded_max_tilt_deg=bad), ScriptedRegistrar(lambda r, t: False))
     for bad in ((1,), (2.5,), (True,)):
         with pytest.raises(ValueError, match="fallback_factors"):
             Tracker(TrackingConfig(fallback_factors=bad), ScriptedRegistrar(lambda r, t: False))
@@ -503,3 +507,41 @@ def test_keyframe_edge_search_repeats_from_the_new_best(ribs, rounds, left, batc
     torch.testing.assert_close(kfs[1].prev_T_kf, torch.linalg.inv(_rib(0.45 * left) @ truth))
     assert tr.moved_edges == 1
     assert reg.batches == batches
+
+
+def _tilt_pose(i: int) -> torch.Tensor:
+    """Frame i tilted 2 degrees per frame about x from frame 0, shifted 0.1 mm per frame."""
+    a = math.radians(2.0 * i)
+    T = torch.eye(4, dtype=torch.float64)
+    T[1:3, 1:3] = torch.tensor([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    T[0, 3] = 1e-4 * i
+    return T
+
+
+class TiltRegistrar(ScriptedRegistrar):
+    def _answer(self, ref_index, tar_index, b, ok):
+        t = torch.linalg.inv(_tilt_pose(tar_index)) @ _tilt_pose(ref_index)
+        full = lambda v, dt=torch.float64: torch.full((b,), v, dtype=dt)  # noqa: E731
+        return RegistrationResult(t.expand(b, 4, 4).clone(), full(0.9), full(0.9), full(100, torch.int64),
+                                  full(7, torch.int64), full(True, torch.bool), full(ok, torch.bool), full(0.1))
+
+
+@pytest.mark.parametrize("decoded, limit, keyframes, tilted", [
+    (False, 5.5, [0, 9], 0),  # gradients given as input: one keyframe for 18 deg
+    (True, None, [0, 9], 0),  # no limit
+    (True, 5.5, [0, 2, 4, 6, 8, 9], 4),  # a third frame would be 6 deg from its keyframe
+    (True, 9.0, [0, 4, 8, 9], 2),
+])
+def test_decoded_frames_keep_their_keyframe_within_the_tilt_limit(decoded, limit, keyframes, tilted):
+    reg = TiltRegistrar(lambda r, t: False)
+    tr = Tracker(TrackingConfig(decoded_max_tilt_deg=limit), reg)
+    steps = [tr.step(replace(frame(i), decoded=decoded)) for i in range(10)]
+    kfs = [k for s in steps for k in s.keyframes] + tr.finish()
+    assert [k.video_index for k in kfs] == keyframes and tr.tilted == tilted
+    assert all(s.in_contact and s.session == 0 for s in steps)
+    kf_pose = {}
+    for k in kfs:  # the chain of keyframe edges and each frame's pose in its keyframe give the truth
+        kf_pose[k.id] = torch.eye(4, dtype=torch.float64) if k.new_session else kf_pose[k.id - 1] @ k.prev_T_kf
+    for s in steps:
+        torch.testing.assert_close(kf_pose[s.keyframe_id] @ s.kf_T_frame, _tilt_pose(s.index))
+        assert decoded is False or limit is None or float(se3.tilt_deg(s.kf_T_frame)) <= limit + 1e-9
