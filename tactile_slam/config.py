@@ -188,6 +188,13 @@ class NormalFlowConfig:
     reported failed (it is iterating in a wrong basin; without the check it would use the
     rest of ``max_iters`` and still fail). Only with ``check_scores``; 0 disables
     (docs/registration.md, "Stall check").
+    ``decoded_max_slope``: a reference frame decoded from an image (``Frame.decoded``)
+    takes its samples only from contact pixels no steeper than this (``|n_xy| / |n_z|``),
+    unless fewer than a quarter of its contact is that flat. The calibration presses hold
+    true slopes up to 0.6, which the shipped model decodes to about 0.5 (gain 0.818);
+    steeper decoded slopes are extrapolated and flattened (docs/registration.md, "Steep
+    pixels from video"). ``None``: every contact pixel. Gradients given as input are not
+    limited.
     """
 
     n_samples: int | None = 3000
@@ -211,12 +218,15 @@ class NormalFlowConfig:
     fallback_shift_search: bool = True
     cpu_chunk_samples: int = 48_000
     stall_check_iters: int = 10
+    decoded_max_slope: float | None = 0.5
 
     def check(self, shape: tuple[int, int] | None = None) -> None:
         """Raise :class:`ConfigError` naming the first invalid setting. ``shape`` ``(H, W)``:
         the coarse and fallback factors must also divide the image size."""
         if self.selection not in SAMPLE_SELECTIONS:
             raise ConfigError(f"normalflow.selection must be one of {SAMPLE_SELECTIONS}, got {self.selection!r}")
+        if self.decoded_max_slope is not None and not self.decoded_max_slope > 0:
+            raise ConfigError(f"normalflow.decoded_max_slope must be > 0 or None, got {self.decoded_max_slope}")
         if self.sample_cell_px < 1:
             raise ConfigError(f"normalflow.sample_cell_px must be >= 1, got {self.sample_cell_px}")
         if self.jacobian not in JACOBIAN_KINDS:

@@ -32,7 +32,7 @@ from tactile_slam.geometry.frame import Frame, WindowBatch
 from tactile_slam.geometry.morphology import as_weights
 from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
 from tactile_slam.registration.result import RegistrationError, RegistrationResult, TrackingLost
-from tactile_slam.registration.sampling import nonzero_2d, select_samples
+from tactile_slam.registration.sampling import nonzero_2d, select_samples, within_slope
 from tactile_slam.registration.shift import correlation_shift
 
 JACOBIANS = dict(zip(JACOBIAN_KINDS, (jacobian_analytic, jacobian_autograd)))
@@ -125,7 +125,7 @@ class PreparedReference:
                   for f in sorted(factors, reverse=True)]
         prep = PreparedReference(sub.points_t, sub.curvature, sub.spread, sub.valid, [*levels, sub.levels[-1]],
                                  self.shape, self.m_per_px, sub.normals_map, sub.contact,
-                                 (*self.settings[:4], jacobian, tuple(sorted(factors, reverse=True))) if self.settings
+                                 (*self.settings[:5], jacobian, tuple(sorted(factors, reverse=True))) if self.settings
                                  else ())
         _check_reference_finite(prep)  # the coarse levels read the normal map around the samples
         return prep
@@ -230,10 +230,11 @@ def _coarse_level(normals_map, points, valid, s, factor, jacobian) -> Level:
 
 def reference_settings(config: NormalFlowConfig) -> tuple:
     """What :func:`prepare_reference` takes from a configuration: the sample selection
-    (count, rule, seed, cell size), the Jacobian and the coarse levels. Two configurations
-    with equal settings prepare a frame identically (the thresholds act later)."""
+    (count, rule, seed, cell size, slope limit on decoded frames), the Jacobian and the
+    coarse levels. Two configurations with equal settings prepare a frame identically (the
+    thresholds act later)."""
     return (config.n_samples, config.selection, config.seed if config.selection == "random" else None,
-            config.sample_cell_px if config.selection == "spread" else None,
+            config.sample_cell_px if config.selection == "spread" else None, config.decoded_max_slope,
             config.jacobian, tuple(sorted(config.coarse_factors, reverse=True)))
 
 
@@ -259,7 +260,10 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     b, h, w = ref.height.shape
     s = ref.mm_per_px / 1000.0
     gen = torch.Generator().manual_seed(config.seed) if config.selection == "random" else None
-    idx, valid = select_samples(ref.curvature, ref.contact, config.n_samples, config.selection, gen,
+    region = ref.contact
+    if ref.decoded and config.decoded_max_slope is not None:
+        region = within_slope(ref.normals, ref.contact, config.decoded_max_slope)
+    idx, valid = select_samples(ref.curvature, region, config.n_samples, config.selection, gen,
                                 config.sample_cell_px)
     normals_map = ref.normals.to(dtype)
     vf = valid.to(dtype)

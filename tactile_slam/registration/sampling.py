@@ -151,6 +151,25 @@ def spread_top_k(score: torch.Tensor, pixel: torch.Tensor, inside: torch.Tensor,
     return top_k_indices(key, k)
 
 
+def within_slope(normals: torch.Tensor, contact: torch.Tensor, max_slope: float,
+                 min_fraction: float = 0.25) -> torch.Tensor:
+    """The contact pixels whose surface slope ``|n_xy| / |n_z|`` is at most ``max_slope``:
+    where the slopes were decoded from an image, steeper ones lie beyond what the
+    calibration presses showed the decoder, which flattens them (docs/registration.md,
+    "Steep pixels from video"). A frame keeps its whole contact when fewer than
+    ``min_fraction`` of its contact pixels are that flat: a touch that is mostly steep is
+    registered on its flattened slopes rather than on a sliver.
+
+    ``(B, H, W, 3)`` normals, ``(B, H, W)`` bool contact -> ``(B, H, W)`` bool.
+    """
+    n_xy = torch.linalg.vector_norm(normals[..., :2], dim=-1)
+    flat = contact & (n_xy <= max_slope * normals[..., 2].abs())
+    b = contact.shape[0]
+    kept = flat.reshape(b, -1).sum(1, dtype=torch.int64)
+    enough = kept >= min_fraction * contact.reshape(b, -1).sum(1, dtype=torch.int64)
+    return torch.where(enough[:, None, None], flat, contact)
+
+
 def _check_scores(score: torch.Tensor) -> None:
     """NaN would silently drop a pixel from the ranking (and Inf take its place): either
     is an input error."""

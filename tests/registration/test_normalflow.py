@@ -4,8 +4,8 @@ from dataclasses import replace
 import pytest
 import torch
 
-from tactile_slam.config import NormalFlowConfig
-from tactile_slam.geometry.frame import Frame, WindowBatch, crop_to_contact, full_batch, window_batch
+from tactile_slam.config import Config, NormalFlowConfig
+from tactile_slam.geometry.frame import Frame, FrameBuilder, WindowBatch, crop_to_contact, full_batch, window_batch
 from tactile_slam.registration.normalflow import (
     normalflow,
     prepare_reference,
@@ -624,6 +624,37 @@ def test_coarse_level(scene):
     assert (rot < 0.1).all() and (trans < 0.01).all() and bool(res.ok.all()), (rot, trans)
     with pytest.raises(RegistrationError, match="coarse_factors"):
         register(ref, tars[:1], None, NormalFlowConfig(coarse_factors=(7,)))
+
+
+def test_decoded_reference_samples_only_its_flatter_pixels():
+    """A reference decoded from an image takes no sample steeper than
+    ``decoded_max_slope``; the same maps given as gradients sample the steep rim too."""
+    h, w = 240, 320
+    yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    dx, dy = xx - (w - 1) / 2, yy - (h - 1) / 2
+    inside = dx**2 + dy**2 < 80.0**2
+    dz = (100.0**2 - (dx**2 + dy**2).clamp(max=100.0**2 - 1)).sqrt()
+    g = (torch.stack([dx / dz, dy / dz], -1) * inside[..., None])[None].float()  # a ball, slopes up to 1.33
+    ref = FrameBuilder(Config()).from_gradients(g, inside[None])
+    slope = torch.linalg.vector_norm(g[0].double(), dim=-1)
+
+    def sampled_slopes(frame, config):
+        prep = prepare_reference(frame, config)
+        p = prep.points_t[0, :2].T[prep.valid[0]].double() / prep.m_per_px
+        col, row = (p[:, 0] + (w - 1) / 2).round().long(), (p[:, 1] + (h - 1) / 2).round().long()
+        return slope[row, col], prep
+
+    cfg = NormalFlowConfig()
+    plain, _ = sampled_slopes(ref, cfg)
+    dec, prep = sampled_slopes(replace(ref, decoded=True), cfg)
+    assert cfg.decoded_max_slope == 0.5 and len(dec) == len(plain) == cfg.n_samples
+    assert float(plain.max()) > 0.9 and float(dec.max()) <= 0.5 + 1e-3
+    assert torch.equal(prep.contact, ref.contact)  # the scores still see the whole contact
+    off, _ = sampled_slopes(replace(ref, decoded=True), replace(cfg, decoded_max_slope=None))
+    torch.testing.assert_close(off, plain)
+    assert reference_settings(replace(cfg, decoded_max_slope=None)) != reference_settings(cfg)
+    with pytest.raises(RegistrationError, match="decoded_max_slope"):
+        prepare_reference(ref, replace(cfg, decoded_max_slope=0.0))
 
 
 def test_reference_settings_say_when_a_preparation_can_be_reused():

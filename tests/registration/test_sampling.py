@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 import torch
 
+from tactile_slam.geometry.curvature import normals_from_gradients
 from tactile_slam.registration.sampling import (_cell_order, flat_nonzero, mask_to_indices, nonzero_2d, select_samples,
-                                                top_k_mask)
+                                                top_k_mask, within_slope)
 
 
 def _random_maps(b=2, h=30, w=40, seed=0, dtype=torch.float32):
@@ -230,3 +231,42 @@ def test_non_finite_curvature_in_the_contact_is_an_error(device, rule, value):
     lap[0, r, c] = value
     with pytest.raises(RegistrationError, match="NaN or Inf"):
         select_samples(lap.to(device), contact.to(device), 100, rule)
+
+
+def _cap(b: int, h: int = 40, w: int = 50, radius_px: float = 30.0, dtype=torch.float32, device="cpu"):
+    """Slopes of spheres of radius ``radius_px`` (shifted per frame) and their contact
+    (a disc of slopes up to about 0.9): ``(B, H, W, 2)``, ``(B, H, W)``."""
+    yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
+    grads, contact = [], []
+    for i in range(b):
+        dx, dy = xx - w / 2 - i, yy - h / 2
+        r2 = dx**2 + dy**2
+        inside = r2 < (0.67 * radius_px) ** 2
+        dz = (radius_px**2 - r2.clamp(max=radius_px**2 - 1)).sqrt()
+        grads.append(torch.stack([dx / dz, dy / dz], -1) * inside[..., None])
+        contact.append(inside)
+    return torch.stack(grads).to(device, dtype), torch.stack(contact).to(device)
+
+
+def test_within_slope_keeps_the_flatter_contact_pixels(device, dtype):
+    g, contact = _cap(3, dtype=dtype, device=device)
+    normals = normals_from_gradients(g)
+    kept = within_slope(normals, contact, 0.5)
+    assert kept.shape == contact.shape and kept.dtype == torch.bool and kept.device == contact.device
+    slope = torch.linalg.vector_norm(g.double(), dim=-1)  # independent: the slopes themselves
+    want = contact & (slope <= 0.5)
+    differ = kept ^ want  # at most rounding at the limit itself
+    if differ.any():
+        assert int(differ.sum()) <= 2 and float((slope[differ] - 0.5).abs().max()) < 1e-4
+    assert not (kept & ~contact).any()
+    assert 0.2 < float(kept.sum() / contact.sum()) < 0.5  # the cap's rim is steeper than 0.5
+    # a frame flatter than the limit nowhere keeps its whole contact; the others do not change
+    few = within_slope(normals, contact, 0.15)
+    share = few.reshape(3, -1).sum(1) / contact.reshape(3, -1).sum(1)
+    assert bool((share == 1.0).all())  # under a quarter of each cap is that flat: all kept
+    assert torch.equal(within_slope(normals, contact, 0.15, min_fraction=0.0),
+                       contact & (torch.linalg.vector_norm(normals[..., :2], dim=-1)
+                                  <= 0.15 * normals[..., 2].abs()))
+    assert torch.equal(within_slope(normals[:1], contact[:1], 0.5), kept[:1])  # per frame
+    empty = torch.zeros_like(contact)
+    assert not within_slope(normals, empty, 0.5).any()
