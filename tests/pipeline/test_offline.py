@@ -19,6 +19,7 @@ from tactile_slam.geometry.frame import CroppedFrame, InputError
 from tactile_slam.io.gradients import GradientSequence
 from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
 from tactile_slam.sim.episode import SimulationSettings, read_episode, simulate_episode
+from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
 
 STATS_KEYS = {"frames", "contact_frames", "keyframes", "sessions", "fps", "timing_ms", "frames_with_pose",
               "implausible_motions", "moved_keyframe_edges", "coarse_rescues", "registration_breaks"}
@@ -216,6 +217,18 @@ def test_device_argument():
     for bad in ("", "gpu", "mps", "cuda:99"):
         with pytest.raises(argparse.ArgumentTypeError):
             device_arg(bad)
+
+
+def test_nf_baseline_is_the_public_trackers_normalflow(tmp_path):
+    """``nf``: frame-to-frame, 5000 random samples, no CCS/SCR checks and none of this
+    package's sample rules (decoded slope limit, spread cells); ``nf-kf`` keeps them."""
+    nf = OfflinePipeline(iter([]), Config(), tmp_path, RunOptions(method="nf"))._tracker()
+    cfg = nf.registrar.config
+    assert isinstance(nf, FrameToFrameTracker)
+    assert (cfg.n_samples, cfg.selection, cfg.check_scores, cfg.decoded_max_slope) == (5000, "random", False, None)
+    kf = OfflinePipeline(iter([]), Config(), tmp_path, RunOptions(method="nf-kf"))._tracker()
+    assert kf.registrar.config.decoded_max_slope == Config().normalflow.decoded_max_slope == 0.5
+    assert kf.registrar.config.selection == "spread"
 
 
 def test_method_validation(tmp_path):
