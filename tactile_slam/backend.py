@@ -75,7 +75,6 @@ class BackEndStats:
     probes: int = 0  # predicted pairs verified for loops waiting between groups
     probe_loops: int = 0  # of them, verified (they still pass the loop gate like any loop)
     probes_ambiguous: int = 0  # verified, but an alternative start verified elsewhere too
-    tilted: int = 0  # loops between decoded keyframes held beyond loop.decoded_max_tilt_deg
     time_refine: list[float] = field(default_factory=list)
     time_loop_detection: list[float] = field(default_factory=list)
     time_pose_graph: list[float] = field(default_factory=list)
@@ -252,7 +251,6 @@ class BackEnd:
         for lp in loops:
             decoded = self.keyframes[lp.ref_id].decoded or self.keyframes[lp.tar_id].decoded
             (keep if not decoded or float(se3.tilt_deg(lp.ref_T_tar)) <= limit else self._tilted).append(lp)
-        self.stats.tilted = len(self._tilted)
         return keep
 
     def _depth_known(self, i: int, j: int) -> bool:
@@ -455,7 +453,7 @@ class BackEnd:
             "probes": st.probes,
             "probe_loops": st.probe_loops,
             "probes_ambiguous": st.probes_ambiguous,
-            "tilted_loops": st.tilted,
+            "tilted_loops": len(self._tilted),
             "timing_ms_per_keyframe": {"loop_detection": med(st.time_loop_detection),
                                        "pose_graph": med(st.time_pose_graph),
                                        "coverage": med(st.time_coverage),

@@ -83,8 +83,9 @@ def test_small_tilt_from_images_is_accepted():
     assert [(lp.ref_id, lp.tar_id) for lp in be.loops] == [(0, 2)] and be.summary()["tilted_loops"] == 0
 
 
-def test_negative_limit_is_refused():
+@pytest.mark.parametrize("bad", [-1.0, float("nan")])
+def test_negative_limit_is_refused(bad):
     cfg = Config()
-    cfg.loop.decoded_max_tilt_deg = -1.0
+    cfg.loop.decoded_max_tilt_deg = bad
     with pytest.raises(ValueError, match="decoded_max_tilt_deg"):
         BackEnd(cfg)

@@ -653,8 +653,9 @@ def test_decoded_reference_samples_only_its_flatter_pixels():
     off, _ = sampled_slopes(replace(ref, decoded=True), replace(cfg, decoded_max_slope=None))
     torch.testing.assert_close(off, plain)
     assert reference_settings(replace(cfg, decoded_max_slope=None)) != reference_settings(cfg)
-    with pytest.raises(RegistrationError, match="decoded_max_slope"):
-        prepare_reference(ref, replace(cfg, decoded_max_slope=0.0))
+    for bad in (0.0, -0.5, float("nan")):
+        with pytest.raises(RegistrationError, match="decoded_max_slope"):
+            prepare_reference(ref, replace(cfg, decoded_max_slope=bad))
 
 
 def test_reference_settings_say_when_a_preparation_can_be_reused():
