@@ -125,6 +125,9 @@ class BackEnd:
             raise ValueError(f"loop.probes must be >= 0, got {config.loop.probes}")
         if config.loop.decoded_max_tilt_deg is not None and not config.loop.decoded_max_tilt_deg >= 0.0:
             raise ValueError(f"loop.decoded_max_tilt_deg must be >= 0 or None, got {config.loop.decoded_max_tilt_deg}")
+        sigma = config.loop.decoded_tilt_sigma_deg
+        if sigma is not None and not (math.isfinite(sigma) and sigma > 0.0):
+            raise ValueError(f"loop.decoded_tilt_sigma_deg must be finite and > 0 or None, got {sigma}")
         if not (config.loop.best_nearby_rot_deg >= 0.0 and config.loop.best_nearby_trans_mm >= 0.0):
             raise ValueError(f"loop.best_nearby_rot_deg and best_nearby_trans_mm must be >= 0, got "
                              f"{config.loop.best_nearby_rot_deg} and {config.loop.best_nearby_trans_mm}")
@@ -192,6 +195,7 @@ class BackEnd:
             loops = self._settle(kf, loops)
             loops = loops + self._within_tilt(self._probe(loops))
             loops = [lp if self._depth_known(lp.ref_id, lp.tar_id) else replace(lp, depth_known=False) for lp in loops]
+            loops = [self._declare_tilt(lp) for lp in loops]
         t1 = time.perf_counter()
         self.stats.time_loop_detection.append(t1 - t0)
 
@@ -206,7 +210,7 @@ class BackEnd:
             loops = self._refine(loops)
             t_refine = time.perf_counter() - t0
         for loop in loops:
-            self.graph.add_between(loop.ref_id, loop.tar_id, loop.ref_T_tar, kind="loop")
+            self.graph.add_between(loop.ref_id, loop.tar_id, loop.ref_T_tar, self._loop_sigma(loop), kind="loop")
             if self.gate is not None:
                 self.gate.add_factor(loop.ref_id, loop.tar_id, loop.ref_T_tar)
         merges = [self.sessions.merge(self.graph, t, [(r, Z)], self.config.posegraph.reinit_merged)
@@ -240,10 +244,9 @@ class BackEnd:
 
     def _within_tilt(self, loops: list[Loop]) -> list[Loop]:
         """``loops`` without those between keyframes decoded from images (either one) whose
-        measured out-of-plane rotation exceeds ``loop.decoded_max_tilt_deg``: the decoder's
-        flattening of steep slopes under-reads a tilt in proportion to it, so such a loop is
-        the right place at the wrong angle (docs/loops.md, "Tilted loops from video"). They
-        are kept for :meth:`held_loops` (reason ``tilted``)."""
+        measured out-of-plane rotation exceeds ``loop.decoded_max_tilt_deg``, the tilt
+        NormalFlow's verification is specified for (docs/loops.md, "Tilted loops from
+        video"). They are kept for :meth:`held_loops` (reason ``tilted``)."""
         limit = self.config.loop.decoded_max_tilt_deg
         if limit is None or not loops:
             return loops
@@ -252,6 +255,26 @@ class BackEnd:
             decoded = self.keyframes[lp.ref_id].decoded or self.keyframes[lp.tar_id].decoded
             (keep if not decoded or float(se3.tilt_deg(lp.ref_T_tar)) <= limit else self._tilted).append(lp)
         return keep
+
+    def _declare_tilt(self, loop: Loop) -> Loop:
+        """``loop`` with ``tilt_sigma_deg`` set to ``loop.decoded_tilt_sigma_deg`` when either
+        keyframe was decoded from an image (the decoder under-reads tilts); unchanged
+        otherwise."""
+        sigma = self.config.loop.decoded_tilt_sigma_deg
+        if sigma is None or not (self.keyframes[loop.ref_id].decoded or self.keyframes[loop.tar_id].decoded):
+            return loop
+        return replace(loop, tilt_sigma_deg=sigma)
+
+    def _loop_sigma(self, loop: Loop) -> list[float] | None:
+        """The between factor's noise ``[translation m x3, rotation rad x3]`` (in the query
+        keyframe's frame, :func:`~tactile_slam.posegraph.se3.between_error`): the graph's
+        default, with ``tilt_sigma_deg`` on the rotations about x and y when the loop
+        declares one; ``None`` (the default) otherwise."""
+        if loop.tilt_sigma_deg is None:
+            return None
+        pg = self.config.posegraph
+        tilt = math.radians(loop.tilt_sigma_deg)
+        return [pg.sigma_trans_m] * 3 + [tilt, tilt, pg.sigma_rot_rad]
 
     def _depth_known(self, i: int, j: int) -> bool:
         """Whether both keyframes' heights have a known zero (:attr:`Keyframe.depth_known`)."""

@@ -260,8 +260,7 @@ class TrackingConfig:
     # more than this out of plane from it counts as failed, so the lazy rule makes the
     # previous frame a keyframe. The decoder under-reads a tilt by about (1 - gain) of it,
     # and the gain falls to 0.818 at the calibration presses' steepest slopes: 1 deg at
-    # 5.5 deg (the same bound as loop.decoded_max_tilt_deg; docs/benchmarks.md, "Keyframes
-    # from video"); None: no limit. Gradients given as input are not limited.
+    # 5.5 deg (docs/benchmarks.md, "Keyframes from video"); None: no limit. Gradients given as input are not limited.
     decoded_max_tilt_deg: float | None = 5.5
     # keyframe edges (docs/benchmarks.md, "Keyframe edges"): a new keyframe's pose in the
     # previous one is registered again from starts shifted this far along +-x and +-y, and
@@ -368,15 +367,20 @@ class LoopConfig:
     # keyframe pair verified by NormalFlow, a second query for the gate; joins more sessions
     # on asymmetric objects, confirms false loops on symmetric ones (docs/loops.md); 0: off
     probes: int = 0
-    # loops between keyframes decoded from images (Frame.decoded) whose measured relative
-    # out-of-plane rotation (the angle between the two sensor axes) exceeds this are held
-    # ("tilted" in loops_held.json): a decoder that returns a fraction g of a slope
-    # under-reads a tilt by about (1 - g) of it, and the shipped model's gain on its held-out
-    # presses falls to 0.818 at the steepest slopes they hold (0.5-0.6), so past
-    # 1 deg / (1 - 0.818) = 5.5 deg such a loop on a steep surface is off by more than the
-    # 1 deg a correct loop may be (docs/loops.md, "Tilted loops from video"); None: no
-    # limit. Gradients given as input are not limited.
-    decoded_max_tilt_deg: float | None = 5.5
+    # loops between keyframes decoded from images (Frame.decoded): a decoder that returns a
+    # fraction g of a slope under-reads a tilt by about (1 - g) of it (the shipped model's
+    # gain on its held-out presses falls to 0.818 at the steepest slopes they hold), so such
+    # a loop is the right place at a less certain angle (docs/loops.md, "Tilted loops from
+    # video"). It enters the pose graph with this standard deviation on its out-of-plane
+    # rotation (about the sensor's x and y axes) instead of posegraph.sigma_rot_rad, and
+    # records it as tilt_sigma_deg in loops.json: the shipped model's held-out normal error
+    # at those slopes, 5.44 deg (docs/calibration.md, "Gain by slope"). None: weighed like
+    # any loop. Translation and the rotation about the sensor axis keep their sigmas.
+    decoded_tilt_sigma_deg: float | None = 5.44
+    # such loops measured more than this out of plane are held ("tilted" in
+    # loops_held.json): NormalFlow's verification is specified and tested up to 15 deg of
+    # tilt (docs/registration.md); None: no limit. Gradients given as input are not limited.
+    decoded_max_tilt_deg: float | None = 15.0
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
     coverage_depth_gate_mm: float | None = None  # count overlap only within this depth

@@ -23,7 +23,8 @@ closure could form, and the ``revisit_funnel``
 (:func:`tactile_slam.eval.loop_funnel.revisit_funnel`): how many of the pairs that
 truly share surface across sessions reach each stage of loop detection, and the
 ``loop_precision`` of the run's accepted loops against ground truth
-(:func:`tactile_slam.cli.eval.loop_report`: a loop is correct within 1 deg and 0.3 mm),
+(:func:`tactile_slam.cli.eval.loop_report`: a loop is correct within 1 deg and 0.3 mm, one
+from video out of plane within its declared ``tilt_sigma_deg``; ``correct_full_pose`` by 1 deg alone),
 and ``held_loops``: the same per reason for the verified loops the back end kept out of
 the graph (:func:`tactile_slam.cli.eval.held_loop_report`).
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from tactile_slam.cli.arguments import output_folder, positive_int
-from tactile_slam.eval.loop_metrics import loop_precision_recall
+from tactile_slam.eval.loop_metrics import loop_flags, loop_precision_recall
 from tactile_slam.eval.tracking_metrics import AXES, per_axis_errors, tracking_report
 from tactile_slam.eval.trajectory import TrajectoryError, check_trajectory, relative_to, valid_mask
 from tactile_slam.sim.episode import read_episode, read_mesh
@@ -106,8 +106,8 @@ def _precision(loops: list[dict], video: dict[int, int], object_T_sensor: np.nda
         raise TrajectoryError(f"{source}: loops through keyframes {unknown[:5]} that keyframes.json does not list")
     pairs = np.array([[video[lp["ref_id"]], video[lp["tar_id"]]] for lp in loops], dtype=np.int64).reshape(-1, 2)
     rel = np.array([lp["ref_T_tar"] for lp in loops], dtype=np.float64).reshape(-1, 4, 4)
-    known = np.array([lp.get("depth_known", True) for lp in loops], dtype=bool)
-    return loop_precision_recall(pairs, rel, object_T_sensor, depth_known=known)
+    known, sigma = loop_flags(loops)
+    return loop_precision_recall(pairs, rel, object_T_sensor, depth_known=known, tilt_sigma_deg=sigma)
 
 
 def _video_of(run_dir: Path) -> dict[int, int]:
@@ -169,7 +169,11 @@ def run(args) -> int:
     mae = metrics["tracking"]["per_axis_mae"]
     print("per-axis MAE: " + ", ".join(f"{k} {mae[k]:.3f}" for k in AXES) + f" over {mae['n_frames']} frames")
     if "loops" in metrics:
-        print(f"loops: {metrics['loops']['correct']} of {metrics['loops']['reported']} correct")
+        lm = metrics["loops"]
+        full = "" if lm["correct_full_pose"] == lm["correct"] else (
+            f" ({lm['correct_full_pose']} within 1 deg in full pose; loops from video are scored out of plane"
+            " within their tilt_sigma_deg)")
+        print(f"loops: {lm['correct']} of {lm['reported']} correct{full}")
     if metrics.get("held_loops"):
         print("verified loops held out of the graph (correct of held): "
               + ", ".join(f"{r} {m['correct']} of {m['reported']}" for r, m in metrics["held_loops"].items()))

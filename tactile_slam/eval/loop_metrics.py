@@ -8,7 +8,12 @@ of frame j's sensor in frame i's sensor frame, metres). Against the ground truth
   (0.3 mm) and its geodesic rotation error at most ``rot_tol_deg`` (1 degree); a loop whose
   keyframes include one without undeformed gel in view (``depth_known`` False in
   ``loops.json``: the height zero, and so the loop's z, is a guess, shared by the
-  keyframe's odometry) is scored on its error across the sensor's axis only;
+  keyframe's odometry) is scored on its error across the sensor's axis only; a loop that
+  declares its out-of-plane rotation uncertain (``tilt_sigma_deg`` in ``loops.json``: loops
+  between keyframes decoded from images, which the pose graph weighs by that standard
+  deviation about the sensor's x and y axes) is scored on its rotation about the sensor axis
+  (``rot_tol_deg``) and its tilt error within ``max(rot_tol_deg, tilt_sigma_deg)``;
+  ``correct_full_pose`` counts every loop by the geodesic test alone;
 * **precision** = correct loops / reported loops;
 * **recall** = ground-truth loops found by a correct report / ground-truth loops, where
   the ground-truth loops are the candidate pairs whose contact patches really overlap
@@ -47,9 +52,28 @@ def relative_pose_errors(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: 
     return np.linalg.norm(t, axis=1) * 1000.0, geodesic_deg(err[:, :3, :3], np.eye(3))
 
 
+def loop_flags(loops: list[dict]) -> tuple[np.ndarray, np.ndarray]:
+    """What ``loops.json`` records declare about their own measurement:
+    ``(depth_known (K,) bool, tilt_sigma_deg (K,) float, NaN where not declared)``."""
+    known = np.array([lp.get("depth_known", True) for lp in loops], dtype=bool)
+    sigma = np.array([np.nan if lp.get("tilt_sigma_deg") is None else lp["tilt_sigma_deg"] for lp in loops],
+                     dtype=np.float64)
+    return known, sigma
+
+
+def tilt_twist_deg(rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Swing-twist split of rotations ``(..., 3, 3)`` about the sensor's z axis: the tilt
+    (the angle the rotation turns the z axis by) and the twist (the remaining rotation
+    about z, ``2 atan2(q_z, q_w)`` of its quaternion), both ``(...,)`` degrees in [0, 180]."""
+    tilt = np.degrees(np.arccos(np.clip(rot[..., 2, 2], -1.0, 1.0)))
+    twist = np.degrees(np.abs(np.arctan2(rot[..., 1, 0] - rot[..., 0, 1], rot[..., 0, 0] + rot[..., 1, 1])))
+    return tilt, twist
+
+
 def loop_precision_recall(pairs: np.ndarray, i_T_j: np.ndarray, object_T_sensor: np.ndarray,
                           gt_pairs: np.ndarray | None = None, trans_tol_mm: float = 0.3,
-                          rot_tol_deg: float = 1.0, depth_known: np.ndarray | None = None) -> dict:
+                          rot_tol_deg: float = 1.0, depth_known: np.ndarray | None = None,
+                          tilt_sigma_deg: np.ndarray | None = None) -> dict:
     """Precision (and recall when ``gt_pairs`` is given) of reported loops.
 
     Args:
@@ -59,17 +83,32 @@ def loop_precision_recall(pairs: np.ndarray, i_T_j: np.ndarray, object_T_sensor:
         gt_pairs: ``(G, 2)`` ground-truth loops (order within a pair is ignored).
         depth_known: ``(K,)`` bool, whether both keyframes of a loop had a known height zero
             (``None``: all); the others are scored without their z error.
+        tilt_sigma_deg: ``(K,)`` the out-of-plane standard deviation each loop declared
+            (NaN: none; ``None``: none declared); such loops are scored as the module
+            says.
 
     Returns:
-        ``{"reported", "correct", "precision", "gt_loops", "found", "recall",
-        "trans_err_mm", "rot_err_deg"}`` (the last two: median over reported loops).
+        ``{"reported", "correct", "correct_full_pose", "precision", "gt_loops", "found",
+        "recall", "trans_err_mm", "rot_err_deg"}`` (the last two: median over reported
+        loops).
     """
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     dt, dr = relative_pose_errors(i_T_j, pairs, object_T_sensor, depth_known)
-    ok = (dt <= trans_tol_mm) & (dr <= rot_tol_deg)
+    full = (dt <= trans_tol_mm) & (dr <= rot_tol_deg)
+    ok = full
+    if tilt_sigma_deg is not None:
+        sigma = np.asarray(tilt_sigma_deg, dtype=np.float64).reshape(-1)
+        if len(sigma) != len(pairs):
+            raise ValueError(f"{len(pairs)} loop pairs but {len(sigma)} tilt sigmas")
+        gt = np.linalg.inv(object_T_sensor[pairs[:, 0]]) @ object_T_sensor[pairs[:, 1]]
+        tilt, twist = tilt_twist_deg((np.linalg.inv(gt) @ np.asarray(i_T_j, dtype=np.float64).reshape(-1, 4, 4))
+                                     [:, :3, :3])
+        split = (dt <= trans_tol_mm) & (twist <= rot_tol_deg) & (tilt <= np.fmax(rot_tol_deg, sigma))
+        ok = np.where(np.isnan(sigma), full, split)
     out = {
         "reported": int(len(pairs)),
         "correct": int(ok.sum()),
+        "correct_full_pose": int(full.sum()),
         "precision": float(ok.mean()) if len(pairs) else float("nan"),
         "trans_err_mm": float(np.median(dt)) if len(pairs) else float("nan"),
         "rot_err_deg": float(np.median(dr)) if len(pairs) else float("nan"),

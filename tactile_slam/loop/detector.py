@@ -87,6 +87,10 @@ class Loop:
             not, the z translation of ``ref_T_tar`` carries that keyframe's guessed height
             zero (set by the back end). The keyframe's odometry carries the same offset, so
             the graph stays consistent: only that keyframe's own z is off.
+        tilt_sigma_deg: the standard deviation the pose graph gives the loop's rotation
+            about the sensor's x and y axes (``loop.decoded_tilt_sigma_deg``, set by the back
+            end on loops between keyframes decoded from images); ``None``: the graph's
+            default, like every other component.
     """
 
     ref_id: int
@@ -100,6 +104,7 @@ class Loop:
     probe: bool = False
     ambiguous: bool = False
     depth_known: bool = True
+    tilt_sigma_deg: float | None = None
 
     @property
     def says_where(self) -> bool:
@@ -112,7 +117,8 @@ class Loop:
         return {"ref_id": self.ref_id, "tar_id": self.tar_id, "ref_T_tar": self.ref_T_tar.tolist(),
                 "ccs": self.ccs, "scr": self.scr, "inliers": self.inliers,
                 "init_tar_T_ref": self.init_tar_T_ref.tolist(), "repetitive": self.repetitive,
-                "probe": self.probe, "ambiguous": self.ambiguous, "depth_known": self.depth_known}
+                "probe": self.probe, "ambiguous": self.ambiguous, "depth_known": self.depth_known,
+                "tilt_sigma_deg": self.tilt_sigma_deg}
 
 
 @dataclass

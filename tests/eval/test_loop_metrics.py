@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tactile_slam.eval.loop_metrics import (gt_loop_pairs, joinable_groups, loop_precision_recall, overlap_mm2,
-                                           relative_pose_errors)
+from tactile_slam.eval.loop_metrics import (gt_loop_pairs, joinable_groups, loop_flags, loop_precision_recall,
+                                           overlap_mm2, relative_pose_errors, tilt_twist_deg)
 
 S_MM = 0.0634
 
@@ -52,6 +52,47 @@ def test_loops_without_known_depth_are_scored_across_the_sensor_axis():
     assert m["correct"] == 1 and m["reported"] == 2
     with pytest.raises(ValueError, match="depth flags"):
         relative_pose_errors(rel, pairs, gt, np.array([True]))
+
+
+def test_tilt_twist_split_against_quaternions():
+    """The tilt is the angle the rotation turns z by; the twist the rotation about z left
+    after it (2 atan2(q_z, q_w) of the quaternion), checked against scipy."""
+    rng = np.random.default_rng(3)
+    rot = Rotation.from_rotvec(rng.normal(0, 0.6, (200, 3)))
+    tilt, twist = tilt_twist_deg(rot.as_matrix())
+    q = rot.as_quat()  # x, y, z, w
+    want_twist = np.degrees(np.abs(np.angle(np.exp(2j * np.arctan2(q[:, 2], q[:, 3])))))
+    want_tilt = np.degrees(np.arccos(np.clip(rot.apply([0.0, 0.0, 1.0])[:, 2], -1, 1)))
+    np.testing.assert_allclose(tilt, want_tilt, atol=1e-9)
+    np.testing.assert_allclose(twist, want_twist, atol=1e-6)
+    pure = Rotation.from_euler("zx", [[30.0, 0.0], [0.0, 7.0], [-50.0, 4.0]], degrees=True).as_matrix()
+    tilt, twist = tilt_twist_deg(pure)  # R = Rz Rx: a 7 deg or 4 deg swing after a turn about z
+    np.testing.assert_allclose(tilt, [0.0, 7.0, 4.0], atol=1e-9)
+    np.testing.assert_allclose(twist, [30.0, 0.0, 50.0], atol=1e-9)
+
+
+def test_loops_with_a_declared_tilt_sigma_are_scored_within_it():
+    """A loop from video weighs its tilt by tilt_sigma_deg in the graph: a 3 deg tilt error
+    is within a 5.44 deg sigma, not within 1 deg; the rotation about the sensor axis and the
+    translation keep the 1 deg / 0.3 mm gate."""
+    gt = poses()
+    pairs = np.array([[2, 40], [5, 50], [7, 30], [10, 45]])
+    rel = np.linalg.inv(gt[pairs[:, 0]]) @ gt[pairs[:, 1]]
+    err = Rotation.from_rotvec(np.deg2rad([[3.0, 0, 0], [0, 3.0, 0], [0, 0, 1.5], [0, 6.0, 0]])).as_matrix()
+    rel[:, :3, :3] = rel[:, :3, :3] @ err
+    loops = [{"depth_known": True, "tilt_sigma_deg": 5.44}] * 4
+    known, sigma = loop_flags(loops)
+    m = loop_precision_recall(pairs, rel, gt, depth_known=known, tilt_sigma_deg=sigma)
+    assert m["reported"] == 4 and m["correct"] == 2 and m["correct_full_pose"] == 0  # twist 1.5, tilt 6 fail
+    none = loop_precision_recall(pairs, rel, gt, tilt_sigma_deg=np.full(4, np.nan))
+    assert none["correct"] == 0 and none == loop_precision_recall(pairs, rel, gt)
+    # a sigma below the gate does not tighten it: a 0.8 deg tilt error passes with sigma 0.1
+    rel2 = np.linalg.inv(gt[pairs[:1, 0]]) @ gt[pairs[:1, 1]]
+    rel2[0, :3, :3] = rel2[0, :3, :3] @ Rotation.from_rotvec([np.deg2rad(0.8), 0, 0]).as_matrix()
+    assert loop_precision_recall(pairs[:1], rel2, gt, tilt_sigma_deg=np.array([0.1]))["correct"] == 1
+    assert loop_flags([{}])[0].tolist() == [True] and np.isnan(loop_flags([{"tilt_sigma_deg": None}])[1]).all()
+    with pytest.raises(ValueError, match="tilt sigmas"):
+        loop_precision_recall(pairs, rel, gt, tilt_sigma_deg=np.ones(3))
 
 
 def test_overlap_of_shifted_square_patch():

@@ -1,9 +1,12 @@
-"""Loops between keyframes decoded from images, far out of plane from each other, are held:
-the decoder's flattening of steep slopes under-reads such a tilt (``loop.decoded_max_tilt_deg``)."""
+"""Loops between keyframes decoded from images: the decoder's flattening of steep slopes
+under-reads a tilt, so such a loop weighs its out-of-plane rotation by
+``loop.decoded_tilt_sigma_deg`` in the pose graph, and one far out of plane
+(``loop.decoded_max_tilt_deg``) is held."""
 
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 
 import pytest
@@ -83,9 +86,68 @@ def test_small_tilt_from_images_is_accepted():
     assert [(lp.ref_id, lp.tar_id) for lp in be.loops] == [(0, 2)] and be.summary()["tilted_loops"] == 0
 
 
+def test_loop_from_images_weighs_its_tilt_loosely(tmp_path):
+    """The decoded loop declares tilt_sigma_deg (loops.json too) and its graph factor takes
+    that sigma on the rotations about x and y, the defaults elsewhere; a loop from gradients
+    keeps the defaults."""
+    kfs, _ = revisit_keyframes()  # 1.5 deg
+    cfg = Config()
+    pg = cfg.posegraph
+    for frames, want in ((kfs, None), (_decoded(kfs), cfg.loop.decoded_tilt_sigma_deg)):
+        be = _run(frames)
+        (loop,) = be.loops
+        assert loop.tilt_sigma_deg == want
+        edges = be.graph.edges
+        (k,) = torch.nonzero(edges.loop).flatten().tolist()
+        tilt = pg.sigma_rot_rad if want is None else math.radians(want)
+        expect = torch.tensor([pg.sigma_trans_m] * 3 + [tilt, tilt, pg.sigma_rot_rad], dtype=torch.float64)
+        torch.testing.assert_close(edges.sigma[k], expect)
+        default = torch.tensor([pg.sigma_trans_m] * 3 + [pg.sigma_rot_rad] * 3, dtype=torch.float64)
+        assert torch.equal(edges.sigma[~edges.loop], default.expand(int((~edges.loop).sum()), 6))
+    be.write(tmp_path)
+    assert [lp["tilt_sigma_deg"] for lp in json.loads((tmp_path / "loops.json").read_text())] == [want]
+    # None weighs a decoded loop like any other
+    (loop,) = _run(_decoded(kfs), decoded_tilt_sigma_deg=None).loops
+    assert loop.tilt_sigma_deg is None
+
+
+def test_loose_tilt_leaves_the_tilt_to_odometry():
+    """Keyframe 2's odometry is 3 deg off in tilt about x and 0.5 mm off in y; the loop to
+    keyframe 0 (measured from the data: the truth) disagrees. From gradients the loop pulls
+    the tilt most of the way back (two odometry edges against one loop of the same sigma:
+    2/3 of it); from images its tilt weighs (0.57 / 5.44)^2 as much, so the tilt stays
+    with the odometry, while the loop still corrects the translation in both."""
+    kfs, truth = revisit_keyframes()
+    wrong = torch.eye(4, dtype=torch.float64)
+    c, s = math.cos(math.radians(3.0)), math.sin(math.radians(3.0))
+    wrong[1:3, 1:3] = torch.tensor([[c, -s], [s, c]], dtype=torch.float64)
+    wrong[1, 3] = 0.5e-3
+    kfs[2] = Keyframe(2, 0, kfs[2].frame, False, kfs[2].prev_T_kf @ wrong)
+
+    def result(frames):
+        be = _run(frames)
+        assert len(be.loops) == 1
+        err = se3.inverse(truth[2]) @ be.graph.pose(2)
+        return float(se3.tilt_deg(err)), float(err[:3, 3].norm()) * 1e3
+
+    tilt_grad, trans_grad = result(kfs)
+    tilt_img, trans_img = result(_decoded(kfs))
+    assert tilt_grad == pytest.approx(1.0, abs=0.15)  # 3 deg x sigma^2 / (sigma^2 + 2 sigma^2)
+    assert tilt_img == pytest.approx(3.0 * 5.44**2 / (5.44**2 + 2 * math.degrees(0.01) ** 2), abs=0.15)
+    assert trans_grad < 0.2 and trans_img < 0.2  # the loop's translation holds either way
+
+
 @pytest.mark.parametrize("bad", [-1.0, float("nan")])
 def test_negative_limit_is_refused(bad):
     cfg = Config()
     cfg.loop.decoded_max_tilt_deg = bad
     with pytest.raises(ValueError, match="decoded_max_tilt_deg"):
+        BackEnd(cfg)
+
+
+@pytest.mark.parametrize("bad", [0.0, -2.0, float("nan"), float("inf")])
+def test_bad_tilt_sigma_is_refused(bad):
+    cfg = Config()
+    cfg.loop.decoded_tilt_sigma_deg = bad
+    with pytest.raises(ValueError, match="decoded_tilt_sigma_deg"):
         BackEnd(cfg)
