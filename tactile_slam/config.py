@@ -260,7 +260,8 @@ class TrackingConfig:
     # more than this out of plane from it counts as failed, so the lazy rule makes the
     # previous frame a keyframe. The decoder under-reads a tilt by about (1 - gain) of it,
     # and the gain falls to 0.818 at the calibration presses' steepest slopes: 1 deg at
-    # 5.5 deg (docs/benchmarks.md, "Keyframes from video"); None: no limit. Gradients given as input are not limited.
+    # 5.5 deg (docs/benchmarks.md, "Keyframes from video"); None: no limit. Gradients given
+    # as input are not limited.
     decoded_max_tilt_deg: float | None = 5.5
     # keyframe edges (docs/benchmarks.md, "Keyframe edges"): a new keyframe's pose in the
     # previous one is registered again from starts shifted this far along +-x and +-y, and
