@@ -59,6 +59,26 @@ def test_eval_cli_scores_reconstruction_in_reference_frame(episode, tmp_path):
     assert rec["mesh.ply"]["icp"]["chamfer_mm"] < 1e-3
 
 
+def test_eval_cli_scores_loops_from_video_within_their_declared_tilt(episode, tmp_path, capsys):
+    """Two loops 3 deg off in tilt: the one that declares tilt_sigma_deg 5.44 (from video)
+    is correct, the one that declares nothing is not; the full-pose count says neither."""
+    from scipy.spatial.transform import Rotation
+
+    gt = np.load(episode / "gt_poses.npy")
+    est = relative_to(gt, 10)
+    est[:10] = np.nan
+    np.save(tmp_path / "poses.npy", est)
+    (tmp_path / "keyframes.json").write_text(json.dumps([{"id": 0, "video_index": 12}, {"id": 1, "video_index": 25}]))
+    rel = np.linalg.inv(gt[12]) @ gt[25]
+    rel[:3, :3] = rel[:3, :3] @ Rotation.from_rotvec([np.deg2rad(3.0), 0, 0]).as_matrix()
+    loops = [{"ref_id": 0, "tar_id": 1, "ref_T_tar": rel.tolist(), "tilt_sigma_deg": sigma} for sigma in (5.44, None)]
+    (tmp_path / "loops.json").write_text(json.dumps(loops))
+    assert main(["eval", str(tmp_path), "--gt", str(episode), "--no-recon"]) == 0
+    m = json.loads((tmp_path / "metrics.json").read_text())["loops"]
+    assert (m["reported"], m["correct"], m["correct_full_pose"]) == (2, 1, 0)
+    assert "loops: 1 of 2 correct (0 within 1 deg in full pose" in capsys.readouterr().out
+
+
 def _held_run(tmp_path, held) -> tuple:
     """A run folder with two keyframes (video frames 3 and 7) and ``loops_held.json``."""
     run = tmp_path / "run"
