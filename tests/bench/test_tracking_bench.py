@@ -58,6 +58,7 @@ def test_tiny_run_writes_finite_report(tmp_path):
     assert row["gelslam"]["objects"]["seed"]["rot_deg"] < 1.0
     loops = row["gelslam"]["loops"]
     assert loops["reported"] == loops["correct"] + loops["false"] and loops["gt_loops"] >= loops["found"]
+    assert loops["correct_full_pose"] == loops["correct"]  # gradient-level loops declare no tilt sigma
     assert "gs_offline_zero_false_loops" in res["targets"]
     assert out.with_suffix(".png").is_file()
     table = tracking.table_iv(res["summary"])
