@@ -378,9 +378,10 @@ class LoopConfig:
     # at those slopes, 5.44 deg (docs/calibration.md, "Gain by slope"). None: weighed like
     # any loop. Translation and the rotation about the sensor axis keep their sigmas.
     decoded_tilt_sigma_deg: float | None = 5.44
-    # such loops measured more than this out of plane are held ("tilted" in
-    # loops_held.json): NormalFlow's verification is specified and tested up to 15 deg of
-    # tilt (docs/registration.md); None: no limit. Gradients given as input are not limited.
+    # such loops verified more than this out of plane are held ("tilted" in
+    # loops_held.json; checked on the verification's pose, before the back end settles or
+    # re-measures the loop): NormalFlow's verification is specified and tested up to 15 deg
+    # of tilt (docs/registration.md); None: no limit. Gradients given as input are not limited.
     decoded_max_tilt_deg: float | None = 15.0
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
