@@ -14,6 +14,7 @@ the reference frame) is scored against ``object.ply`` too. Writes ``metrics.json
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 import numpy as np
@@ -95,6 +96,10 @@ def _read_loops(path: Path, held: bool = False) -> list[dict]:
     keys = {"ref_id", "tar_id", "ref_T_tar"} | ({"reason"} if held else set())
     if not isinstance(loops, list) or not all(isinstance(lp, dict) and keys <= lp.keys() for lp in loops):
         raise TrajectoryError(f"{path} is not a list of loop records with {sorted(keys)}")
+    for lp in loops:
+        sigma = lp.get("tilt_sigma_deg")
+        if sigma is not None and not (isinstance(sigma, (int, float)) and math.isfinite(sigma) and sigma > 0):
+            raise TrajectoryError(f"{path}: tilt_sigma_deg must be a positive number or null, got {sigma!r}")
     return loops
 
 

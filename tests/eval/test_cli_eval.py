@@ -107,6 +107,10 @@ def test_held_loop_report_scores_each_reason(tmp_path):
     ({"ref_id": 0}, "not a list of loop records"),
     ([{"ref_id": 0, "tar_id": 1, "ref_T_tar": np.eye(4).tolist()}], "reason"),  # no reason
     ([{"ref_id": 0, "tar_id": 9, "ref_T_tar": np.eye(4).tolist(), "reason": "waiting"}], r"keyframes \[9\]"),
+    ([{"ref_id": 0, "tar_id": 1, "ref_T_tar": np.eye(4).tolist(), "reason": "waiting", "tilt_sigma_deg": "x"}],
+     "tilt_sigma_deg"),
+    ([{"ref_id": 0, "tar_id": 1, "ref_T_tar": np.eye(4).tolist(), "reason": "waiting", "tilt_sigma_deg": -1}],
+     "tilt_sigma_deg"),
 ])
 def test_held_loop_report_refuses_malformed_files(tmp_path, held, match):
     run, gt = _held_run(tmp_path, held)
