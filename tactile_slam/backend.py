@@ -252,8 +252,7 @@ class BackEnd:
             return loops
         keep = []
         for lp in loops:
-            decoded = self.keyframes[lp.ref_id].decoded or self.keyframes[lp.tar_id].decoded
-            (keep if not decoded or float(se3.tilt_deg(lp.ref_T_tar)) <= limit else self._tilted).append(lp)
+            (keep if not self._decoded(lp) or float(se3.tilt_deg(lp.ref_T_tar)) <= limit else self._tilted).append(lp)
         return keep
 
     def _declare_tilt(self, loop: Loop) -> Loop:
@@ -261,9 +260,11 @@ class BackEnd:
         keyframe was decoded from an image (the decoder under-reads tilts); unchanged
         otherwise."""
         sigma = self.config.loop.decoded_tilt_sigma_deg
-        if sigma is None or not (self.keyframes[loop.ref_id].decoded or self.keyframes[loop.tar_id].decoded):
-            return loop
-        return replace(loop, tilt_sigma_deg=sigma)
+        return loop if sigma is None or not self._decoded(loop) else replace(loop, tilt_sigma_deg=sigma)
+
+    def _decoded(self, loop: Loop) -> bool:
+        """Whether either keyframe of ``loop`` was decoded from an image (:attr:`Keyframe.decoded`)."""
+        return self.keyframes[loop.ref_id].decoded or self.keyframes[loop.tar_id].decoded
 
     def _loop_sigma(self, loop: Loop) -> list[float] | None:
         """The between factor's noise ``[translation m x3, rotation rad x3]`` (in the query

@@ -31,12 +31,11 @@ from tactile_slam.eval.tracking_metrics import geodesic_deg
 REACH_M = 0.03  # sensors more than 30 mm apart cannot share a patch
 
 
-def relative_pose_errors(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: np.ndarray,
-                         depth_known: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Errors of estimated relative poses ``(K, 4, 4)`` for ``pairs`` ``(K, 2)`` against
-    ground truth ``(T, 4, 4)`` ``object_T_sensor``; where ``depth_known`` ``(K,)`` bool is
-    False the translation error leaves out its z (frame j's sensor axis). Returns
-    ``(trans_mm (K,), rot_deg (K,))``."""
+def _error_poses(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: np.ndarray,
+                 depth_known: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(err (K, 4, 4), trans_mm (K,))``: each estimate against the truth,
+    ``inv(gt_i_T_j) @ i_T_j``, and its translation error (without z where ``depth_known``
+    is False). Checks the shapes and indices as :func:`relative_pose_errors` says."""
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     i_T_j = np.asarray(i_T_j, dtype=np.float64).reshape(-1, 4, 4)
     if len(pairs) != len(i_T_j):
@@ -49,7 +48,17 @@ def relative_pose_errors(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: 
     gt = np.linalg.inv(object_T_sensor[pairs[:, 0]]) @ object_T_sensor[pairs[:, 1]]
     err = np.linalg.inv(gt) @ i_T_j
     t = err[:, :3, 3] * np.where(known[:, None], 1.0, np.array([1.0, 1.0, 0.0]))
-    return np.linalg.norm(t, axis=1) * 1000.0, geodesic_deg(err[:, :3, :3], np.eye(3))
+    return err, np.linalg.norm(t, axis=1) * 1000.0
+
+
+def relative_pose_errors(i_T_j: np.ndarray, pairs: np.ndarray, object_T_sensor: np.ndarray,
+                         depth_known: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Errors of estimated relative poses ``(K, 4, 4)`` for ``pairs`` ``(K, 2)`` against
+    ground truth ``(T, 4, 4)`` ``object_T_sensor``; where ``depth_known`` ``(K,)`` bool is
+    False the translation error leaves out its z (frame j's sensor axis). Returns
+    ``(trans_mm (K,), rot_deg (K,))``."""
+    err, trans = _error_poses(i_T_j, pairs, object_T_sensor, depth_known)
+    return trans, geodesic_deg(err[:, :3, :3], np.eye(3))
 
 
 def loop_flags(loops: list[dict]) -> tuple[np.ndarray, np.ndarray]:
@@ -93,16 +102,15 @@ def loop_precision_recall(pairs: np.ndarray, i_T_j: np.ndarray, object_T_sensor:
         loops).
     """
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    dt, dr = relative_pose_errors(i_T_j, pairs, object_T_sensor, depth_known)
+    err, dt = _error_poses(i_T_j, pairs, object_T_sensor, depth_known)
+    dr = geodesic_deg(err[:, :3, :3], np.eye(3))
     full = (dt <= trans_tol_mm) & (dr <= rot_tol_deg)
     ok = full
     if tilt_sigma_deg is not None:
         sigma = np.asarray(tilt_sigma_deg, dtype=np.float64).reshape(-1)
         if len(sigma) != len(pairs):
             raise ValueError(f"{len(pairs)} loop pairs but {len(sigma)} tilt sigmas")
-        gt = np.linalg.inv(object_T_sensor[pairs[:, 0]]) @ object_T_sensor[pairs[:, 1]]
-        tilt, twist = tilt_twist_deg((np.linalg.inv(gt) @ np.asarray(i_T_j, dtype=np.float64).reshape(-1, 4, 4))
-                                     [:, :3, :3])
+        tilt, twist = tilt_twist_deg(err[:, :3, :3])
         split = (dt <= trans_tol_mm) & (twist <= rot_tol_deg) & (tilt <= np.fmax(rot_tol_deg, sigma))
         ok = np.where(np.isnan(sigma), full, split)
     out = {
