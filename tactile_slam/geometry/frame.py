@@ -26,6 +26,16 @@ class InputError(ValueError):
 _SCALARS = ("mm_per_px", "decoded")  # Frame's fields that are not per-frame tensors
 
 
+def item_slice(i: int, n: int) -> slice:
+    """The one-item slice a batch's integer index ``i`` (negative from the end) selects,
+    so that the item keeps its batch axis. Raises ``IndexError`` outside ``[-n, n)``,
+    which also ends a ``for`` loop over the batch."""
+    if not -n <= i < n:
+        raise IndexError(f"index {i} is out of range for a batch of {n}")
+    i %= n
+    return slice(i, i + 1)
+
+
 @dataclass
 class Frame:
     """Geometry of ``B`` tactile frames.
@@ -80,7 +90,7 @@ class Frame:
 
     def __getitem__(self, i: int | slice | torch.Tensor) -> "Frame":
         if isinstance(i, int):
-            i = slice(i, i + 1) if i != -1 else slice(-1, None)
+            i = item_slice(i, len(self))
         return self._map(lambda t: t[i])
 
     def clone(self) -> "Frame":
@@ -203,7 +213,7 @@ class WindowBatch:
 
     def __getitem__(self, i: int | slice | torch.Tensor) -> "WindowBatch":
         if isinstance(i, int):
-            i = slice(i, i + 1) if i != -1 else slice(-1, None)
+            i = item_slice(i, len(self))
         return WindowBatch(self.maps[i], self.origins[i.cpu() if isinstance(i, torch.Tensor) else i],
                            self.full_shape)
 

@@ -6,6 +6,8 @@ from dataclasses import dataclass, fields
 
 import torch
 
+from tactile_slam.geometry.frame import item_slice
+
 
 class RegistrationError(ValueError):
     """Registration inputs are unusable (NaN/Inf, mismatched sizes or batches, bad init)."""
@@ -49,7 +51,7 @@ class RegistrationResult:
 
     def __getitem__(self, i: int | slice | torch.Tensor) -> "RegistrationResult":
         if isinstance(i, int):
-            i = slice(i, i + 1) if i != -1 else slice(-1, None)
+            i = item_slice(i, len(self))
         return RegistrationResult(**{f.name: getattr(self, f.name)[i] for f in fields(self)})
 
     def clone(self) -> "RegistrationResult":

@@ -482,6 +482,32 @@ class TestCropToContact:
             crop_to_contact(_touch(), margin=2)
 
 
+def _batch_of_three():
+    z = torch.rand(3, 5, 6)
+    return Frame(gradients=torch.rand(3, 5, 6, 2), height=z, contact=z > 0.5, normals=torch.rand(3, 5, 6, 3),
+                 curvature=-z, in_contact=torch.ones(3, dtype=torch.bool), depth_known=torch.ones(3, dtype=torch.bool),
+                 index=torch.arange(3), timestamp=torch.arange(3, dtype=torch.float64), mm_per_px=0.0634)
+
+
+def test_integer_indexing_and_iteration():
+    """``frames[i]`` keeps the batch axis, counts from the end when negative and raises
+    IndexError outside the batch, so ``for frame in frames`` visits each frame once and
+    stops (a slice past the end would have been an empty batch, forever)."""
+    batch = _batch_of_three()
+    for i, j in ((0, 0), (2, 2), (-1, 2), (-2, 1), (-3, 0)):
+        assert len(batch[i]) == 1 and int(batch[i].index) == j
+    for i in (3, -4, 100):
+        with pytest.raises(IndexError, match=f"index {i} is out of range for a batch of 3"):
+            batch[i]
+    assert [int(f.index) for f in batch] == [0, 1, 2]
+    assert [len(f) for f in batch] == [1, 1, 1]
+    crops = [crop_to_contact(_touch(seed=i)) for i in range(2)]
+    wb = window_batch(crops, 4)
+    assert [torch.equal(w.maps.height, wb.maps.height[i:i + 1]) for i, w in enumerate(wb)] == [True, True]
+    with pytest.raises(IndexError):
+        wb[2]
+
+
 class TestWindowBatch:
     """Targets of a batched registration in windows of one size around their boxes."""
 

@@ -72,6 +72,12 @@ class TestSmoke:
         assert bool(((batched.conditioning > 0) & (batched.conditioning <= 1)).all())
         assert batched.ok.dtype == torch.bool and batched.n_shared.dtype == torch.int64
         assert torch.equal(batched.tar_T_ref[:, 3], EYE[3].expand(b, 4))
+        pairs = list(batched)  # one result per pair, each with its batch axis; the loop ends
+        assert len(pairs) == b and all(len(p) == 1 for p in pairs)
+        assert torch.equal(pairs[-1].tar_T_ref, batched[-1].tar_T_ref) and torch.equal(
+            batched[-1].tar_T_ref, batched.tar_T_ref[b - 1:])
+        with pytest.raises(IndexError, match=f"out of range for a batch of {b}"):
+            batched[b]
 
     def test_iterations_respect_min_and_cap(self, scene, batched):
         assert (batched.iterations <= 50).all()
