@@ -3,8 +3,8 @@ import pytest
 import torch
 
 from tactile_slam.geometry.curvature import normals_from_gradients
-from tactile_slam.registration.sampling import (_cell_order, flat_nonzero, mask_to_indices, nonzero_2d, select_samples,
-                                                top_k_mask, within_slope)
+from tactile_slam.registration.sampling import (_spread_batch, flat_nonzero, mask_to_indices, nonzero_2d,
+                                                select_samples, spread_top_k, top_k_mask, within_slope)
 
 
 def _random_maps(b=2, h=30, w=40, seed=0, dtype=torch.float32):
@@ -127,16 +127,24 @@ class TestSpreadRule:
         idx, valid = select_samples(lap.to(device), contact.to(device), 10**6, "spread")
         assert valid.sum(1).tolist() == contact.reshape(2, -1).sum(1).tolist()
 
-    def test_torch_order_equals_numpy_radix_order(self):
-        """The stable (cell, level) order: numpy's radix sort on the CPU and torch's sort
-        elsewhere (or with 2**15 cells or more) give the same permutation."""
+    @pytest.mark.parametrize("cell_px", [1, 8, 16])
+    def test_numpy_rows_equal_batched_torch(self, cell_px):
+        """The CPU's per-frame numpy ranking and the batched torch ops (the accelerator
+        path, run here on the CPU) pick the same samples: frames of different contact
+        sizes (padding), scores with many ties (the position decides), fewer candidates
+        than k in one frame, and one-pixel cells (more than int16 cells)."""
         g = torch.Generator().manual_seed(5)
-        cell = torch.randint(0, 40, (3, 500), generator=g)
-        level = torch.randint(0, 8, (3, 500), generator=g)  # many ties: the position decides
-        radix = _cell_order(cell, level, 40)
-        assert torch.equal(radix, torch.sort(cell * 65536 + level, dim=1, stable=True).indices)
-        many = cell + 2**15  # too many cells for int16: the torch path
-        assert torch.equal(_cell_order(many, level, 40 + 2**15), radix)
+        contact = torch.rand((3, 200, 200), generator=g) > 0.5
+        contact[1, 50:] = False
+        contact[2] = False
+        contact[2, :10, :20] = True  # 200 candidates, fewer than k
+        pixel, inside = mask_to_indices(contact.reshape(3, -1))
+        score = torch.where(inside, torch.randint(0, 6, pixel.shape, generator=g).float() / 5, 0.0)
+        for k in (1, 700, 5000):
+            pos, valid = spread_top_k(score, pixel, inside, 200, cell_px, k)
+            want_pos, want_valid = _spread_batch(score, pixel, inside, 200, cell_px, k)
+            assert torch.equal(valid, want_valid) and torch.equal(pos[valid], want_pos[want_valid]), k
+            assert valid.sum(1).tolist() == [k, k, min(k, 200)]
 
     def test_many_cells_matches_reference(self):
         """One-pixel cells on a 200 x 200 image (40,000 cells: the torch path): every
