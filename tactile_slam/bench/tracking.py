@@ -156,15 +156,18 @@ def episode_specs(args) -> list[EpisodeSpec]:
 
 
 def cached_episode(cache: Path, spec: EpisodeSpec, config: Config) -> Path:
-    """The episode folder of ``spec`` under ``cache``, simulated when missing."""
+    """The episode folder of ``spec`` under ``cache``, simulated when missing or made by an
+    earlier motion revision."""
     from tactile_slam.sim.episode import EpisodeError, SimulationSettings, read_episode, simulate_episode
+    from tactile_slam.sim.motions import MOTION_REVISION
 
     path = cache / spec.name
     done = path / "meta.yaml"
     if done.is_file():
         try:
             ep = read_episode(path)
-            if len(ep) == spec.frames and ep.meta.get("level") == spec.level:
+            if len(ep) == spec.frames and ep.meta.get("level") == spec.level \
+                    and ep.meta.get("motion_revision") == MOTION_REVISION:
                 return path
         except EpisodeError:
             pass

@@ -39,7 +39,7 @@ from tactile_slam.eval.tracking_metrics import motion_range
 from tactile_slam.eval.trajectory import relative_to
 from tactile_slam.io.gradients import EPISODE_NPZ
 from tactile_slam.io.scan import VIDEO_NAME
-from tactile_slam.sim.motions import Motion, MotionConfig, make_motion
+from tactile_slam.sim.motions import MOTION_REVISION, Motion, MotionConfig, make_motion
 from tactile_slam.sim.objects import OBJECTS, resolve_object
 from tactile_slam.sim.renderer import GelRenderer, RenderConfig
 
@@ -231,6 +231,7 @@ def simulate_episode(out_dir: str | Path, settings: SimulationSettings, config: 
                    "mesh_scale": settings.mesh_scale, "triangles": len(mesh.triangles), "file": MESH},
         "gel": dataclasses.asdict(renderer.render_config),
         "motion": _plain(dataclasses.asdict(motion_config)),
+        "motion_revision": MOTION_REVISION,
         "motion_range_from_first_contact": motion_range(gt_rel[first:], in_contact[first:]),
         "image": None if settings.level == "gradients" else {
             "colour_model": str(settings.colour_model or DEFAULT_COLOUR_MODEL),

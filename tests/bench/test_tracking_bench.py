@@ -4,9 +4,11 @@ import math
 import time
 
 import pytest
+import yaml
 
 from tactile_slam.bench import tracking
 from tactile_slam.config import Config
+from tactile_slam.sim.motions import MOTION_REVISION
 
 
 def parse(tmp_path, *extra):
@@ -68,6 +70,12 @@ def test_tiny_run_writes_finite_report(tmp_path):
     t0 = time.perf_counter()
     path = tracking.cached_episode(tmp_path / "episodes", spec, Config())
     assert path.name == spec.name and time.perf_counter() - t0 < 2.0
+    # an episode made by an earlier motion revision is simulated again
+    meta = yaml.safe_load((path / "meta.yaml").read_text())
+    meta["motion_revision"] = 1
+    (path / "meta.yaml").write_text(yaml.safe_dump(meta))
+    tracking.cached_episode(tmp_path / "episodes", spec, Config())
+    assert yaml.safe_load((path / "meta.yaml").read_text())["motion_revision"] == MOTION_REVISION
 
 
 def test_config_reaches_the_runs_and_a_bad_one_stops_first(tmp_path):
