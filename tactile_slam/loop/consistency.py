@@ -209,8 +209,9 @@ class GateStats:
     ``ambiguous``: evaluations where two disagreeing sets of loops both had enough support,
     or a closed cycle that another loop between its groups contradicts (no merge);
     ``cycles``: cycles of three groups closed by single loops (each merges three groups);
-    ``repetitive``: loops between groups on a texture that matches itself elsewhere
-    (``Loop.repetitive``) or whose pair also verifies elsewhere (``Loop.ambiguous``): dropped;
+    ``repetitive``: loops on a texture that matches itself elsewhere (``Loop.repetitive``)
+    or whose pair also verifies elsewhere (``Loop.ambiguous``), dropped: between groups all
+    of them, within a group those beyond the tolerance at zero drift path;
     ``pending``: loops waiting now.
     """
 
@@ -263,11 +264,13 @@ class LoopGate:
             cycle. The three groups merge.
         trust_repetitive: let loops whose keyframes' texture matches another part of itself
             (``Loop.repetitive``, e.g. a knurl's lattice) join two groups like any other. By
-            default such a loop is used only within a group, where the estimate predicts it
-            (within the tolerance, or corroborated within the doubt band); between groups it
-            is dropped: two keyframes on one periodic texture match the same wrong period
-            alike, and nothing else can tell. Loops marked ``ambiguous`` (the pair also
-            verifies elsewhere, :mod:`tactile_slam.loop.ambiguity`) are treated the same.
+            default such a loop is used only within a group, and only where the estimate
+            predicts it within the tolerance at zero drift path (the loop's own error): once
+            the estimate has drifted, a match one period off agrees with it as well as the
+            true one (the knurl, 2026-11-29). Between groups it is dropped: two keyframes on
+            one periodic texture match the same wrong period alike, and nothing else can
+            tell. Loops marked ``ambiguous`` (the pair also verifies elsewhere,
+            :mod:`tactile_slam.loop.ambiguity`) are treated the same.
 
     The caller reports every factor it adds (:meth:`add_factor`) and calls :meth:`select`
     once per keyframe with its verified loops, after the keyframe's node and odometry are in.
@@ -353,8 +356,9 @@ class LoopGate:
 
     def held(self) -> list[tuple[object, str]]:
         """Every verified loop the gate has not let into the graph, with the reason:
-        ``repetitive`` / ``ambiguous`` (between groups, dropped: ``Loop.repetitive``, or its
-        pair also verified elsewhere), ``inconsistent`` (within a group, beyond
+        ``repetitive`` / ``ambiguous`` (dropped: ``Loop.repetitive``, or its pair also
+        verified elsewhere; between groups, or within one beyond the tolerance at zero drift
+        path), ``inconsistent`` (within a group, beyond
         ``doubt_factor`` times the drift tolerance: rejected), ``waiting`` (between groups,
         pending: too little agreeing support yet, or a disagreeing set as strong) and
         ``doubtful`` (within a group, between the tolerance and ``doubt_factor`` times it:
@@ -362,8 +366,8 @@ class LoopGate:
         return self.dropped + [(p.loop, "waiting" if len(p.groups) == 2 else "doubtful") for p in self.pending]
 
     def _drop_repetitive(self, loops: list[PendingLoop]) -> list[PendingLoop]:
-        """The loops between groups that may wait for corroboration: those on a repeating
-        texture are dropped (counted in ``stats.repetitive``)."""
+        """The loops that may wait for corroboration: those on a repeating texture are
+        dropped (counted in ``stats.repetitive``)."""
         keep = [p for p in loops if not p.repetitive]
         self.dropped += [(p.loop, "repetitive" if p.loop.repetitive else "ambiguous")
                          for p in loops if p.repetitive]
@@ -392,6 +396,13 @@ class LoopGate:
         # beyond the search limit the doubt band exceeds a half turn: nothing can be rejected
         plausible = (consistent(pred, meas, paths, self.model.scaled(self.doubt_factor))
                      | ~torch.isfinite(paths)).tolist()
+        # a repetitive loop: its aliases agree with the estimate as well once it has drifted,
+        # so it counts only where it agrees within the loop's own error (no drift allowance)
+        if any(p.repetitive for p in loops):
+            tight = consistent(pred, meas, torch.zeros_like(paths), self.model).tolist()
+            keep = [not p.repetitive or t for p, t in zip(loops, tight)]
+            self._drop_repetitive([p for p, k in zip(loops, keep) if not k])
+            loops, ok, plausible = ([x for x, k in zip(v, keep) if k] for v in (loops, ok, plausible))
         doubtful = [p for p, k, m in zip(loops, ok, plausible) if m and not k]
         for p in doubtful:
             p.groups, p.recheck = frozenset(), False  # evaluated with its group below

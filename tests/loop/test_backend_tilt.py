@@ -112,16 +112,19 @@ def test_loop_from_images_weighs_its_tilt_loosely(tmp_path):
 
 
 def test_loose_tilt_leaves_the_tilt_to_odometry():
-    """Keyframe 2's odometry is 3 deg off in tilt about x and 0.5 mm off in y; the loop to
+    """Keyframe 2's odometry is 2.4 deg off in tilt about x and 0.4 mm off in y; the loop to
     keyframe 0 (measured from the data: the truth) disagrees. From gradients the loop pulls
     the tilt most of the way back (two odometry edges against one loop of the same sigma:
     2/3 of it); from images its tilt weighs (0.57 / 5.44)^2 as much, so the tilt stays
-    with the odometry, while the loop still corrects the translation in both."""
+    with the odometry, while the loop still corrects the translation in both. (The error
+    stays within a loop's own tolerance, 3 deg and 0.5 mm, which is all the gate allows a
+    loop on a texture that matches itself; the synthetic surface is one.)"""
+    off = 2.4
     kfs, truth = revisit_keyframes()
     wrong = torch.eye(4, dtype=torch.float64)
-    c, s = math.cos(math.radians(3.0)), math.sin(math.radians(3.0))
+    c, s = math.cos(math.radians(off)), math.sin(math.radians(off))
     wrong[1:3, 1:3] = torch.tensor([[c, -s], [s, c]], dtype=torch.float64)
-    wrong[1, 3] = 0.5e-3
+    wrong[1, 3] = 0.4e-3
     kfs[2] = Keyframe(2, 0, kfs[2].frame, False, kfs[2].prev_T_kf @ wrong)
 
     def result(frames):
@@ -132,8 +135,8 @@ def test_loose_tilt_leaves_the_tilt_to_odometry():
 
     tilt_grad, trans_grad = result(kfs)
     tilt_img, trans_img = result(_decoded(kfs))
-    assert tilt_grad == pytest.approx(1.0, abs=0.15)  # 3 deg x sigma^2 / (sigma^2 + 2 sigma^2)
-    assert tilt_img == pytest.approx(3.0 * 5.44**2 / (5.44**2 + 2 * math.degrees(0.01) ** 2), abs=0.15)
+    assert tilt_grad == pytest.approx(off / 3, abs=0.15)  # off x sigma^2 / (sigma^2 + 2 sigma^2)
+    assert tilt_img == pytest.approx(off * 5.44**2 / (5.44**2 + 2 * math.degrees(0.01) ** 2), abs=0.15)
     assert trans_grad < 0.2 and trans_img < 0.2  # the loop's translation holds either way
 
 

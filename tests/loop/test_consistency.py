@@ -144,6 +144,40 @@ def test_symmetric_false_loop_rejected_true_loop_with_drift_accepted():
     assert gate.stats.rejected_consistency == 1 and gate.held() == [(false_loop, "inconsistent")]
 
 
+def test_repetitive_loop_within_a_group_gets_no_drift_allowance():
+    """On a texture that matches itself, a false loop one period off agrees with an
+    estimate that has drifted as well as the true loop does. So a repetitive loop counts
+    only within the loop's own error (the base tolerance): the true loop of the drifted
+    arc, accepted when its texture is unique, is dropped as repetitive; a short repetitive
+    loop that the estimate predicts closely is accepted."""
+    true = arc(30)
+    est, odo = drifted(true)
+
+    def gate_with_odometry():
+        gate = LoopGate(MODEL)
+        gate.add_node(0)
+        for k, Z in enumerate(odo):
+            gate.add_factor(k, k + 1, Z)
+        return gate
+
+    far = se3.inverse(true[0]) @ true[29]
+    rot, trans = pose_error((se3.inverse(est[0]) @ est[29])[None], far[None])
+    assert float(rot) > 1.0 and float(trans) > MODEL.base_trans_mm  # beyond the base, within the drift
+    unique = loop(0, 29, far)
+    assert gate_with_odometry().select([unique], lambda k: 0, lambda k: est[k]).accepted == [unique]
+    repeated = replace(loop(0, 29, far), repetitive=True)
+    gate = gate_with_odometry()
+    sel = gate.select([repeated], lambda k: 0, lambda k: est[k])
+    assert sel.accepted == [] and gate.pending == [] and gate.held() == [(repeated, "repetitive")]
+    assert gate.stats.repetitive == 1 and gate.stats.doubtful == 0
+    near = replace(loop(26, 28, se3.inverse(true[26]) @ true[28]), repetitive=True)
+    assert gate.select([near], lambda k: 0, lambda k: est[k]).accepted == [near]
+    trusting = LoopGate(MODEL, trust_repetitive=True)
+    for k, Z in enumerate(odo):
+        trusting.add_factor(k, k + 1, Z)
+    assert trusting.select([repeated], lambda k: 0, lambda k: est[k]).accepted == [repeated]
+
+
 def test_beyond_a_half_turn_of_drift_nothing_is_rejected():
     """When the doubt band exceeds 180 degrees the estimate cannot refute a loop: it waits for
     agreement instead of being rejected, and the drift search stops there."""
