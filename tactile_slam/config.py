@@ -263,6 +263,12 @@ class TrackingConfig:
     # 5.5 deg (docs/benchmarks.md, "Keyframes from video"); None: no limit. Gradients given
     # as input are not limited.
     decoded_max_tilt_deg: float | None = 5.5
+    # opt-in cross-check (docs/benchmarks.md, "Frame-to-frame cross-check"): each frame is
+    # also registered against the previous frame, and a keyframe registration more than
+    # this far in rotation from that chained result counts as failed (the lazy rule makes
+    # the previous frame a keyframe). Registration against a keyframe held while the sensor
+    # rolls around a cylinder drifts with CCS still high; about 3 ms more per frame. None: off
+    f2f_check_deg: float | None = None
     # keyframe edges (docs/benchmarks.md, "Keyframe edges"): a new keyframe's pose in the
     # previous one is registered again from starts shifted this far along +-x and +-y, and
     # a start whose result verifies with a CCS higher by more than keyframe_near_margin,

@@ -86,7 +86,8 @@ def tracker_counts(tracker) -> dict:
             "moved_keyframe_edges": getattr(tracker, "moved_edges", 0),
             "coarse_rescues": getattr(tracker, "coarse_rescues", 0),
             "registration_breaks": getattr(tracker, "registration_breaks", 0),
-            "tilted_registrations": getattr(tracker, "tilted", 0)}
+            "tilted_registrations": getattr(tracker, "tilted", 0),
+            "f2f_refusals": getattr(tracker, "f2f_refusals", 0)}
 
 
 class OfflinePipeline:

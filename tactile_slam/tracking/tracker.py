@@ -161,7 +161,7 @@ class Tracker:
             raise ValueError(f"tracking.init must be one of {INIT_MODES}, got {config.init!r}")
         if config.keyframe_edge not in EDGE_MODES:
             raise ValueError(f"tracking.keyframe_edge must be one of {EDGE_MODES}, got {config.keyframe_edge!r}")
-        for name in ("max_deg_per_s", "max_mm_per_s", "keyframe_near_mm", "decoded_max_tilt_deg"):
+        for name in ("max_deg_per_s", "max_mm_per_s", "keyframe_near_mm", "decoded_max_tilt_deg", "f2f_check_deg"):
             v = getattr(config, name)
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise ValueError(f"tracking.{name} must be a positive number or None, got {v!r}")
@@ -192,6 +192,7 @@ class Tracker:
         self.coarse_rescues = 0  # frames kept in their session by the coarse fallback
         self.registration_breaks = 0  # sessions started inside a contact: registration failed
         self.tilted = 0  # registrations of decoded frames refused for their tilt from the keyframe
+        self.f2f_refusals = 0  # keyframe registrations refused by the frame-to-frame cross-check
 
     # ----------------------------------------------------------------- helpers
     def _make_keyframe(self, frame: Frame, new_session: bool, prev_T_kf: torch.Tensor) -> Keyframe:
@@ -294,7 +295,8 @@ class Tracker:
         if bool(res.ok):
             kf_T_frame = _kf_T_frame(res)
             if self.prev_is_keyframe or (self._continuous(frame, kf_T_frame)
-                                         and self._within_tilt(frame, kf_T_frame)):
+                                         and self._within_tilt(frame, kf_T_frame)
+                                         and self._agrees_with_previous(frame, kf_T_frame)):
                 return self._tracked(frame, res, kf_T_frame, [])
         if self.prev_is_keyframe:
             res = self._coarse(frame)
@@ -364,6 +366,23 @@ class Tracker:
         ok = (c.max_deg_per_s is None or float(rot) <= c.max_deg_per_s * dt) and \
             (c.max_mm_per_s is None or float(trans) <= c.max_mm_per_s * dt)
         self.implausible += not ok
+        return ok
+
+    def _agrees_with_previous(self, frame: Frame, kf_T_frame: torch.Tensor) -> bool:
+        """Whether ``kf_T_frame`` (against an older keyframe) lies within
+        ``tracking.f2f_check_deg`` in rotation of the frame registered against the previous
+        frame and chained onto its pose; always, when the check is off or that registration
+        fails. A refusal makes the previous frame the keyframe (the lazy rule)."""
+        limit = self.config.f2f_check_deg
+        if limit is None:
+            return True
+        start = torch.linalg.inv(torch.linalg.inv(self.kf_T_prev) @ kf_T_frame)  # prev_T_frame, inverted
+        res = self.registrar.register(self.registrar.prepare(self.prev), frame, start[None])[0]
+        if not bool(res.ok):
+            return True
+        chained = self.kf_T_prev @ _kf_T_frame(res)
+        ok = float(pose_error(chained[None], kf_T_frame[None])[0]) <= limit
+        self.f2f_refusals += not ok
         return ok
 
     def _within_tilt(self, frame: Frame, kf_T_frame: torch.Tensor) -> bool:

@@ -111,6 +111,26 @@ def check_poses(steps, kfs):
         torch.testing.assert_close(est, true)
 
 
+@pytest.mark.parametrize("check", [None, 1.0])
+def test_frame_to_frame_cross_check(check):
+    """Registrations against keyframe 0 drift by 2 deg from frame 3 on, while every
+    frame-to-frame registration is right (a keyframe held while the sensor rolls around
+    a cylinder). Off, the drifted poses are kept; with the 1 deg check, frame 3's keyframe
+    registration disagrees with frame 2 -> 3 chained onto frame 2's pose, so frame 2
+    becomes a keyframe and every pose is right."""
+    c, s = math.cos(math.radians(2.0)), math.sin(math.radians(2.0))
+    turn = torch.eye(4, dtype=torch.float64)
+    turn[:2, :2] = torch.tensor([[c, -s], [s, c]], dtype=torch.float64)
+    steps, kfs, reg = run([True] * 6, slip=lambda r, t: turn if r == 0 and t >= 3 else None, f2f_check_deg=check)
+    if check is None:
+        assert [k.video_index for k in kfs] == [0, 5] and reg.tracker.f2f_refusals == 0
+        with pytest.raises(AssertionError):
+            check_poses(steps, kfs)
+    else:
+        assert [k.video_index for k in kfs] == [0, 2, 5] and reg.tracker.f2f_refusals == 1
+        check_poses(steps, kfs)
+
+
 def test_single_session_no_failures():
     steps, kfs, _ = run([True] * 6)
     assert [k.id for k in kfs] == [0, 1]
@@ -405,6 +425,8 @@ def test_bad_config_and_batch():
             Tracker(TrackingConfig(max_mm_per_s=bad), ScriptedRegistrar(lambda r, t: False))
         with pytest.raises(ValueError, match="decoded_max_tilt_deg"):
             Tracker(TrackingConfig(decoded_max_tilt_deg=bad), ScriptedRegistrar(lambda r, t: False))
+        with pytest.raises(ValueError, match="f2f_check_deg"):
+            Tracker(TrackingConfig(f2f_check_deg=bad), ScriptedRegistrar(lambda r, t: False))
     for bad in ((1,), (2.5,), (True,)):
         with pytest.raises(ValueError, match="fallback_factors"):
             Tracker(TrackingConfig(fallback_factors=bad), ScriptedRegistrar(lambda r, t: False))
