@@ -129,15 +129,13 @@ def spread_top_k(score: torch.Tensor, pixel: torch.Tensor, inside: torch.Tensor,
         return torch.arange(m, device=pixel.device).expand(b, m).clone(), inside.clone()
     if pixel.device.type != "cpu":
         return _spread_batch(score, pixel, inside, width, cell_px, k)
-    counts = inside.sum(1).tolist()
     rows = [_spread_row(score[i, :n].numpy(), pixel[i, :n].numpy(), width, cell_px, k)
-            for i, n in enumerate(counts)]
-    longest = max(max(len(r) for r in rows), 1)
-    pos = np.zeros((b, longest), dtype=np.int64)
+            for i, n in enumerate(inside.sum(1).tolist())]
+    lengths = torch.tensor([len(r) for r in rows])
+    pos = np.zeros((b, max(int(lengths.max()), 1)), dtype=np.int64)
     for i, r in enumerate(rows):
         pos[i, :len(r)] = r
-    lengths = torch.tensor([len(r) for r in rows])
-    return torch.from_numpy(pos), torch.arange(longest)[None, :] < lengths[:, None]
+    return torch.from_numpy(pos), torch.arange(pos.shape[1])[None, :] < lengths[:, None]
 
 
 def _cells(pixel, width: int, cell_px: int):
