@@ -260,9 +260,13 @@ class TrackingConfig:
     # more than this out of plane from it counts as failed, so the lazy rule makes the
     # previous frame a keyframe. The decoder under-reads a tilt by about (1 - gain) of it,
     # and the gain falls to 0.818 at the calibration presses' steepest slopes: 1 deg at
-    # 5.5 deg (docs/benchmarks.md, "Keyframes from video"); None: no limit. Gradients given
-    # as input are not limited.
+    # 5.5 deg (docs/benchmarks.md, "Keyframes from video"); None: no limit
     decoded_max_tilt_deg: float | None = 5.5
+    # every frame (gradients given as input too): the same rule at this tilt. NormalFlow's
+    # error grows with the tilt between its frames, and against a keyframe held while the
+    # sensor rolls it can stall in a valley of nearly equal alignments with CCS still high
+    # (docs/benchmarks.md, "Keyframe tilt limit"); None: no limit
+    max_tilt_deg: float | None = 10.0
     # opt-in cross-check (docs/benchmarks.md, "Frame-to-frame cross-check"): each frame is
     # also registered against the previous frame, and a keyframe registration more than
     # this far in rotation from that chained result counts as failed (the lazy rule makes

@@ -8,10 +8,11 @@ texture NormalFlow can converge to a wrong alignment that the scores cannot tell
 and the lazy rule's retry from the previous frame recovers; a legitimately fast motion is
 accepted by that retry and only costs a keyframe (docs/benchmarks.md).
 
-For frames decoded from images the same holds for a registration more than
-``tracking.decoded_max_tilt_deg`` out of plane from its keyframe: the decoder flattens steep
-slopes, so a long out-of-plane baseline is measured short (docs/benchmarks.md, "Keyframes
-from video").
+The same holds for a registration more than ``tracking.max_tilt_deg`` out of plane from
+its keyframe: NormalFlow's error grows with the tilt, and on a roll it can stall with
+high scores (docs/benchmarks.md, "Keyframe tilt limit"). For frames decoded from images the
+limit is ``tracking.decoded_max_tilt_deg`` where smaller: the decoder flattens steep
+slopes, so a long out-of-plane baseline is measured short ("Keyframes from video").
 
 A new keyframe's pose in the previous keyframe (the odometry edge of the pose graph) is
 registered again, in one batch, from starts shifted by ``tracking.keyframe_near_mm`` along
@@ -161,7 +162,8 @@ class Tracker:
             raise ValueError(f"tracking.init must be one of {INIT_MODES}, got {config.init!r}")
         if config.keyframe_edge not in EDGE_MODES:
             raise ValueError(f"tracking.keyframe_edge must be one of {EDGE_MODES}, got {config.keyframe_edge!r}")
-        for name in ("max_deg_per_s", "max_mm_per_s", "keyframe_near_mm", "decoded_max_tilt_deg", "f2f_check_deg"):
+        for name in ("max_deg_per_s", "max_mm_per_s", "keyframe_near_mm", "decoded_max_tilt_deg", "max_tilt_deg",
+                     "f2f_check_deg"):
             v = getattr(config, name)
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise ValueError(f"tracking.{name} must be a positive number or None, got {v!r}")
@@ -191,7 +193,7 @@ class Tracker:
         self.moved_edges = 0  # keyframe edges replaced by a better-scoring nearby alignment
         self.coarse_rescues = 0  # frames kept in their session by the coarse fallback
         self.registration_breaks = 0  # sessions started inside a contact: registration failed
-        self.tilted = 0  # registrations of decoded frames refused for their tilt from the keyframe
+        self.tilted = 0  # registrations refused for their tilt from the keyframe
         self.f2f_refusals = 0  # keyframe registrations refused by the frame-to-frame cross-check
 
     # ----------------------------------------------------------------- helpers
@@ -386,12 +388,14 @@ class Tracker:
         return ok
 
     def _within_tilt(self, frame: Frame, kf_T_frame: torch.Tensor) -> bool:
-        """Whether a frame decoded from an image lies within ``tracking.decoded_max_tilt_deg``
-        of its (older) keyframe out of plane; gradients given as input always do. A refusal
-        makes the previous frame the keyframe (the lazy rule): the decoder under-reads
-        tilts in proportion to them, so long out-of-plane baselines are measured short."""
-        limit = self.config.decoded_max_tilt_deg
-        ok = limit is None or not frame.decoded or float(se3.tilt_deg(kf_T_frame)) <= limit
+        """Whether a frame lies within ``tracking.max_tilt_deg`` of its (older) keyframe out
+        of plane, and within ``tracking.decoded_max_tilt_deg`` if decoded from an image. A
+        refusal makes the previous frame the keyframe (the lazy rule): the registration's
+        error grows with the tilt, and the decoder under-reads tilts in proportion to them."""
+        c = self.config
+        limits = [c.max_tilt_deg] + ([c.decoded_max_tilt_deg] if frame.decoded else [])
+        limits = [x for x in limits if x is not None]
+        ok = not limits or float(se3.tilt_deg(kf_T_frame)) <= min(limits)
         self.tilted += not ok
         return ok
 

@@ -425,6 +425,8 @@ def test_bad_config_and_batch():
             Tracker(TrackingConfig(max_mm_per_s=bad), ScriptedRegistrar(lambda r, t: False))
         with pytest.raises(ValueError, match="decoded_max_tilt_deg"):
             Tracker(TrackingConfig(decoded_max_tilt_deg=bad), ScriptedRegistrar(lambda r, t: False))
+        with pytest.raises(ValueError, match="tracking.max_tilt_deg"):
+            Tracker(TrackingConfig(max_tilt_deg=bad), ScriptedRegistrar(lambda r, t: False))
         with pytest.raises(ValueError, match="f2f_check_deg"):
             Tracker(TrackingConfig(f2f_check_deg=bad), ScriptedRegistrar(lambda r, t: False))
     for bad in ((1,), (2.5,), (True,)):
@@ -548,15 +550,19 @@ class TiltRegistrar(ScriptedRegistrar):
                                   full(7, torch.int64), full(True, torch.bool), full(ok, torch.bool), full(0.1))
 
 
-@pytest.mark.parametrize("decoded, limit, keyframes, tilted", [
-    (False, 5.5, [0, 9], 0),  # gradients given as input: one keyframe for 18 deg
-    (True, None, [0, 9], 0),  # no limit
-    (True, 5.5, [0, 2, 4, 6, 8, 9], 4),  # a third frame would be 6 deg from its keyframe
-    (True, 9.0, [0, 4, 8, 9], 2),
+@pytest.mark.parametrize("decoded, limit, all_limit, keyframes, tilted", [
+    (False, 5.5, None, [0, 9], 0),  # gradients given as input: one keyframe for 18 deg
+    (True, None, None, [0, 9], 0),  # no limit
+    (True, 5.5, None, [0, 2, 4, 6, 8, 9], 4),  # a third frame would be 6 deg from its keyframe
+    (True, 9.0, None, [0, 4, 8, 9], 2),
+    (False, 5.5, 9.0, [0, 4, 8, 9], 2),  # the limit for every frame
+    (True, 5.5, 9.0, [0, 2, 4, 6, 8, 9], 4),  # decoded: the smaller of the two
+    (True, 9.0, 5.5, [0, 2, 4, 6, 8, 9], 4),
+    (True, None, 9.0, [0, 4, 8, 9], 2),
 ])
-def test_decoded_frames_keep_their_keyframe_within_the_tilt_limit(decoded, limit, keyframes, tilted):
+def test_frames_keep_their_keyframe_within_the_tilt_limits(decoded, limit, all_limit, keyframes, tilted):
     reg = TiltRegistrar(lambda r, t: False)
-    tr = Tracker(TrackingConfig(decoded_max_tilt_deg=limit), reg)
+    tr = Tracker(TrackingConfig(decoded_max_tilt_deg=limit, max_tilt_deg=all_limit), reg)
     steps = [tr.step(replace(frame(i), decoded=decoded)) for i in range(10)]
     kfs = [k for s in steps for k in s.keyframes] + tr.finish()
     assert [k.video_index for k in kfs] == keyframes and tr.tilted == tilted
