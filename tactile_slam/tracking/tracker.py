@@ -393,8 +393,7 @@ class Tracker:
         refusal makes the previous frame the keyframe (the lazy rule): the registration's
         error grows with the tilt, and the decoder under-reads tilts in proportion to them."""
         c = self.config
-        limits = [c.max_tilt_deg] + ([c.decoded_max_tilt_deg] if frame.decoded else [])
-        limits = [x for x in limits if x is not None]
+        limits = [x for x in (c.max_tilt_deg, c.decoded_max_tilt_deg if frame.decoded else None) if x is not None]
         ok = not limits or float(se3.tilt_deg(kf_T_frame)) <= min(limits)
         self.tilted += not ok
         return ok
