@@ -116,11 +116,11 @@ def boundary_weights(contact: torch.Tensor, length: float | None = None) -> torc
     Returns:
         ``(B, H, W)`` float32 in [0, 1].
     """
-    l = contact.shape[-2] / 60.0 if length is None else float(length)
-    if not l > 0:
-        raise CoverageError(f"weight length must be > 0, got {l}")
-    d = distance_to_background(contact, 10.0 * l)  # W(10 l) = 1 - 8e-7
-    return 0.5 * (torch.tanh(d / l - 3.0) + 1.0) * contact
+    scale = contact.shape[-2] / 60.0 if length is None else float(length)
+    if not scale > 0:
+        raise CoverageError(f"weight length must be > 0, got {scale}")
+    d = distance_to_background(contact, 10.0 * scale)  # W(10 l) = 1 - 8e-7
+    return 0.5 * (torch.tanh(d / scale - 3.0) + 1.0) * contact
 
 
 def point_map(height: torch.Tensor, m_per_px: float, origin: tuple[int, int] = (0, 0),

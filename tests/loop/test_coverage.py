@@ -88,13 +88,13 @@ def test_boundary_weights_values_and_shapes(device):
     mask = rect(20, 220, 20, 300).to(device)
     w = boundary_weights(torch.stack([mask, ~mask]))
     assert w.shape == (2, H, W) and w.dtype == torch.float32
-    l = H / 60
+    scale = H / 60
     d = torch.from_numpy(distance_transform_edt(np.pad(mask.cpu().numpy(), 1))[1:-1, 1:-1]).float()
-    ref = 0.5 * (torch.tanh(d / l - 3) + 1) * mask.cpu()
+    ref = 0.5 * (torch.tanh(d / scale - 3) + 1) * mask.cpu()
     torch.testing.assert_close(w[0].cpu(), ref, atol=1e-6, rtol=0)
     # Sample values of method.md 6.1: W(12 px) = 0.5 at 12 px inside the edge.
     assert w[0, 20 + 11, 160].item() == pytest.approx(0.5, abs=1e-6)
-    assert w[0, 20, 160].item() == pytest.approx(0.5 * (math.tanh(1 / l - 3) + 1), abs=1e-6)
+    assert w[0, 20, 160].item() == pytest.approx(0.5 * (math.tanh(1 / scale - 3) + 1), abs=1e-6)
     assert float(w[1][mask].abs().max()) == 0.0  # zero outside contact
 
 

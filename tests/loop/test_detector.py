@@ -177,6 +177,7 @@ def test_verification_uses_the_query_as_reference(scene):
     rot, trans = pose_error(got.tar_T_ref[both], method.tar_T_ref.double()[both])
     assert float(rot.max()) < 0.05 and float(trans.max()) < 0.005
 
+
 def test_verification_reuses_the_trackers_preparation(scene, monkeypatch):
     """A query keyframe that still carries the tracker's preparation (same sample settings,
     other thresholds) is not prepared again, and verifies exactly as a freshly prepared
