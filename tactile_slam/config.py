@@ -193,8 +193,14 @@ class NormalFlowConfig:
     unless fewer than a quarter of its contact is that flat. The calibration presses hold
     true slopes up to 0.6, which the shipped model decodes to about 0.5 (gain 0.818);
     steeper decoded slopes are extrapolated and flattened (docs/registration.md, "Steep
-    pixels from video"). ``None``: every contact pixel. Gradients given as input are not
-    limited.
+    pixels from video"). ``None``: no limit for decoded frames beyond ``max_slope``.
+    ``max_slope``: every reference frame, decoded or given as gradients, takes its samples
+    only from contact pixels no steeper than this, with the same exception. The gel
+    low-passes the indentation in its own frame, and slope is not linear in angle, so on
+    steep texture the smoothed slopes of two touches tilted against each other are not
+    related by the rotation: NormalFlow from the true pose then stops short of the tilt
+    (docs/registration.md, "Steep pixels through the gel"). ``None``: every contact pixel.
+    Where both limits apply the lower one holds.
     """
 
     n_samples: int | None = 3000
@@ -219,14 +225,17 @@ class NormalFlowConfig:
     cpu_chunk_samples: int = 48_000
     stall_check_iters: int = 10
     decoded_max_slope: float | None = 0.5
+    max_slope: float | None = 0.5
 
     def check(self, shape: tuple[int, int] | None = None) -> None:
         """Raise :class:`ConfigError` naming the first invalid setting. ``shape`` ``(H, W)``:
         the coarse and fallback factors must also divide the image size."""
         if self.selection not in SAMPLE_SELECTIONS:
             raise ConfigError(f"normalflow.selection must be one of {SAMPLE_SELECTIONS}, got {self.selection!r}")
-        if self.decoded_max_slope is not None and not self.decoded_max_slope > 0:
-            raise ConfigError(f"normalflow.decoded_max_slope must be > 0 or None, got {self.decoded_max_slope}")
+        for name in ("decoded_max_slope", "max_slope"):
+            limit = getattr(self, name)
+            if limit is not None and not limit > 0:
+                raise ConfigError(f"normalflow.{name} must be > 0 or None, got {limit}")
         if self.sample_cell_px < 1:
             raise ConfigError(f"normalflow.sample_cell_px must be >= 1, got {self.sample_cell_px}")
         if self.jacobian not in JACOBIAN_KINDS:

@@ -148,7 +148,7 @@ class OfflinePipeline:
     def _tracker(self):
         if self.options.method == "nf":  # the public NormalFlow tracker: none of our sample rules
             nf = replace(self.config.normalflow, n_samples=5000, selection="random", check_scores=False,
-                         decoded_max_slope=None)
+                         decoded_max_slope=None, max_slope=None)
             return FrameToFrameTracker(NormalFlowRegistrar(nf, self.config.tracking),
                                        self.config.tracking.keep_contact_mm2)
         return Tracker(self.config.tracking, NormalFlowRegistrar(self.config.normalflow, self.config.tracking))

@@ -125,7 +125,7 @@ class PreparedReference:
                   for f in sorted(factors, reverse=True)]
         prep = PreparedReference(sub.points_t, sub.curvature, sub.spread, sub.valid, [*levels, sub.levels[-1]],
                                  self.shape, self.m_per_px, sub.normals_map, sub.contact,
-                                 (*self.settings[:5], jacobian, tuple(sorted(factors, reverse=True))) if self.settings
+                                 (*self.settings[:-2], jacobian, tuple(sorted(factors, reverse=True))) if self.settings
                                  else ())
         _check_reference_finite(prep)  # the coarse levels read the normal map around the samples
         return prep
@@ -230,12 +230,20 @@ def _coarse_level(normals_map, points, valid, s, factor, jacobian) -> Level:
 
 def reference_settings(config: NormalFlowConfig) -> tuple:
     """What :func:`prepare_reference` takes from a configuration: the sample selection
-    (count, rule, seed, cell size, slope limit on decoded frames), the Jacobian and the
+    (count, rule, seed, cell size, slope limits), the Jacobian and the
     coarse levels. Two configurations with equal settings prepare a frame identically (the
     thresholds act later)."""
     return (config.n_samples, config.selection, config.seed if config.selection == "random" else None,
             config.sample_cell_px if config.selection == "spread" else None, config.decoded_max_slope,
-            config.jacobian, tuple(sorted(config.coarse_factors, reverse=True)))
+            config.max_slope, config.jacobian, tuple(sorted(config.coarse_factors, reverse=True)))
+
+
+def slope_limit(config: NormalFlowConfig, decoded: bool) -> float | None:
+    """The steepest slope ``|n_xy| / |n_z|`` a reference's samples may have: ``max_slope``,
+    and for a frame decoded from an image also ``decoded_max_slope`` (the lower holds);
+    None for no limit."""
+    limits = [x for x in (config.max_slope, config.decoded_max_slope if decoded else None) if x is not None]
+    return min(limits) if limits else None
 
 
 @torch.inference_mode()
@@ -260,9 +268,8 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     b, h, w = ref.height.shape
     s = ref.mm_per_px / 1000.0
     gen = torch.Generator().manual_seed(config.seed) if config.selection == "random" else None
-    region = ref.contact
-    if ref.decoded and config.decoded_max_slope is not None:
-        region = within_slope(ref.normals, ref.contact, config.decoded_max_slope)
+    limit = slope_limit(config, ref.decoded)
+    region = ref.contact if limit is None else within_slope(ref.normals, ref.contact, limit)
     idx, valid = select_samples(ref.curvature, region, config.n_samples, config.selection, gen,
                                 config.sample_cell_px)
     normals_map = ref.normals.to(dtype)

@@ -221,13 +221,15 @@ def test_device_argument():
 
 def test_nf_baseline_is_the_public_trackers_normalflow(tmp_path):
     """``nf``: frame-to-frame, 5000 random samples, no CCS/SCR checks and none of this
-    package's sample rules (decoded slope limit, spread cells); ``nf-kf`` keeps them."""
+    package's sample rules (slope limits, spread cells); ``nf-kf`` keeps them."""
     nf = OfflinePipeline(iter([]), Config(), tmp_path, RunOptions(method="nf"))._tracker()
     cfg = nf.registrar.config
     assert isinstance(nf, FrameToFrameTracker)
-    assert (cfg.n_samples, cfg.selection, cfg.check_scores, cfg.decoded_max_slope) == (5000, "random", False, None)
+    assert (cfg.n_samples, cfg.selection, cfg.check_scores, cfg.decoded_max_slope, cfg.max_slope) == (
+        5000, "random", False, None, None)
     kf = OfflinePipeline(iter([]), Config(), tmp_path, RunOptions(method="nf-kf"))._tracker()
     assert kf.registrar.config.decoded_max_slope == Config().normalflow.decoded_max_slope == 0.5
+    assert kf.registrar.config.max_slope == Config().normalflow.max_slope == 0.5
     assert kf.registrar.config.selection == "spread"
 
 

@@ -632,9 +632,9 @@ def test_coarse_level(scene):
         register(ref, tars[:1], None, NormalFlowConfig(coarse_factors=(7,)))
 
 
-def test_decoded_reference_samples_only_its_flatter_pixels():
-    """A reference decoded from an image takes no sample steeper than
-    ``decoded_max_slope``; the same maps given as gradients sample the steep rim too."""
+def _ball_reference():
+    """A reference whose contact is a ball cap with slopes up to 1.33, and its slopes
+    ``(H, W)`` (float64)."""
     h, w = 240, 320
     yy, xx = torch.meshgrid(torch.arange(h, dtype=torch.float64), torch.arange(w, dtype=torch.float64), indexing="ij")
     dx, dy = xx - (w - 1) / 2, yy - (h - 1) / 2
@@ -642,26 +642,51 @@ def test_decoded_reference_samples_only_its_flatter_pixels():
     dz = (100.0**2 - (dx**2 + dy**2).clamp(max=100.0**2 - 1)).sqrt()
     g = (torch.stack([dx / dz, dy / dz], -1) * inside[..., None])[None].float()  # a ball, slopes up to 1.33
     ref = FrameBuilder(Config()).from_gradients(g, inside[None])
-    slope = torch.linalg.vector_norm(g[0].double(), dim=-1)
+    return ref, torch.linalg.vector_norm(g[0].double(), dim=-1)
 
-    def sampled_slopes(frame, config):
-        prep = prepare_reference(frame, config)
-        p = prep.points_t[0, :2].T[prep.valid[0]].double() / prep.m_per_px
-        col, row = (p[:, 0] + (w - 1) / 2).round().long(), (p[:, 1] + (h - 1) / 2).round().long()
-        return slope[row, col], prep
 
-    cfg = NormalFlowConfig()
-    plain, _ = sampled_slopes(ref, cfg)
-    dec, prep = sampled_slopes(replace(ref, decoded=True), cfg)
+def _sampled_slopes(frame, slope, config):
+    """The slopes at a prepared reference's samples, and the preparation."""
+    prep = prepare_reference(frame, config)
+    h, w = frame.shape
+    p = prep.points_t[0, :2].T[prep.valid[0]].double() / prep.m_per_px
+    col, row = (p[:, 0] + (w - 1) / 2).round().long(), (p[:, 1] + (h - 1) / 2).round().long()
+    return slope[row, col], prep
+
+
+def test_decoded_reference_samples_only_its_flatter_pixels():
+    """A reference decoded from an image takes no sample steeper than
+    ``decoded_max_slope``; without the general limit the same maps given as gradients
+    sample the steep rim too."""
+    ref, slope = _ball_reference()
+    cfg = NormalFlowConfig(max_slope=None)
+    plain, _ = _sampled_slopes(ref, slope, cfg)
+    dec, prep = _sampled_slopes(replace(ref, decoded=True), slope, cfg)
     assert cfg.decoded_max_slope == 0.5 and len(dec) == len(plain) == cfg.n_samples
     assert float(plain.max()) > 0.9 and float(dec.max()) <= 0.5 + 1e-3
     assert torch.equal(prep.contact, ref.contact)  # the scores still see the whole contact
-    off, _ = sampled_slopes(replace(ref, decoded=True), replace(cfg, decoded_max_slope=None))
+    off, _ = _sampled_slopes(replace(ref, decoded=True), slope, replace(cfg, decoded_max_slope=None))
     torch.testing.assert_close(off, plain)
     assert reference_settings(replace(cfg, decoded_max_slope=None)) != reference_settings(cfg)
-    for bad in (0.0, -0.5, float("nan")):
-        with pytest.raises(RegistrationError, match="decoded_max_slope"):
-            prepare_reference(ref, replace(cfg, decoded_max_slope=bad))
+    for name in ("decoded_max_slope", "max_slope"):
+        for bad in (0.0, -0.5, float("nan")):
+            with pytest.raises(RegistrationError, match=name):
+                prepare_reference(ref, replace(cfg, **{name: bad}))
+
+
+@pytest.mark.parametrize("decoded", [False, True])
+def test_every_reference_samples_no_pixel_steeper_than_the_limit(decoded):
+    """``max_slope`` holds for gradients given as input and for decoded frames; where
+    both limits apply the lower one does; a contact mostly steeper keeps its steep pixels."""
+    ref, slope = _ball_reference()
+    ref = replace(ref, decoded=decoded)
+    for limit, dec_limit, expect in ((0.5, None, 0.5), (0.7, 0.5, 0.5 if decoded else 0.7), (0.6, 0.8, 0.6)):
+        got, _ = _sampled_slopes(ref, slope, NormalFlowConfig(max_slope=limit, decoded_max_slope=dec_limit))
+        assert len(got) == NormalFlowConfig().n_samples and float(got.max()) <= expect + 1e-3
+        assert float(got.max()) > expect - 0.05  # the limit, not something stricter
+    steep, _ = _sampled_slopes(ref, slope, NormalFlowConfig(max_slope=0.05, decoded_max_slope=None))
+    assert float(steep.max()) > 0.9  # under a quarter of the contact is that flat: all of it is used
+    assert reference_settings(NormalFlowConfig(max_slope=None)) != reference_settings(NormalFlowConfig())
 
 
 def test_reference_settings_say_when_a_preparation_can_be_reused():
