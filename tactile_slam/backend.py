@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from tactile_slam.config import Config
-from tactile_slam.loop.ambiguity import best, elsewhere, nearby, starts
+from tactile_slam.loop.ambiguity import best, elsewhere, starts
 from tactile_slam.loop.consistency import DriftModel, LoopGate
 from tactile_slam.loop.coverage import CoverageSet
 from tactile_slam.loop.detector import Loop, LoopDetector
@@ -289,11 +289,14 @@ class BackEnd:
           estimate's prediction by more than ``loop.best_nearby_rot_deg`` or
           ``best_nearby_trans_mm`` moves to the verified alignment with the highest CCS among
           its pose and its shifts by the gate's base translation tolerance
-          (:func:`~tactile_slam.loop.ambiguity.nearby`). On ribs a fraction of a millimetre
-          apart, a loop one period off verifies and passes the gate (its error is inside the
-          drift tolerance); the near start one period over reaches the truth, which scores
-          higher. A loop closer to the prediction cannot be false where the estimate is
-          right, so it is taken as measured.
+          (the near starts of :func:`~tactile_slam.loop.ambiguity.starts`). On ribs a
+          fraction of a millimetre apart, a loop one period off verifies and passes the gate
+          (its error is inside the drift tolerance); the near start one period over reaches
+          the truth, which scores higher. It is marked ``ambiguous`` when one of the other
+          starts verifies elsewhere: on a lattice coarser than the near shifts (a knurl) a
+          loop a period off stays there, and the gate then takes it only where it agrees with
+          the estimate at zero drift. A loop closer to the prediction cannot be false where
+          the estimate is right, so it is taken as measured.
         * Between two groups (``loop.check_ambiguity``): marked ``ambiguous`` when the pair
           also verifies from an alternative start at another pose. With
           ``loop.best_nearby`` (or probes) such loops first move to the best nearby
@@ -324,17 +327,18 @@ class BackEnd:
                 if amb:
                     out[i] = replace(out[i], ambiguous=True)
             self.stats.ambiguous_loops += sum(flag)
-        if within:  # the loop's own verification competes with its four near starts
+        if within:  # the loop's own pose competes with its near starts; the other starts must not verify
             own = torch.stack([se3.inverse(loops[i].ref_T_tar.double()) for i in within])
             q_T_c, ok, ccs, scr = self._verify_starts(kf, [loops[i].ref_id for i in within],
-                                                      torch.cat([nearby(T, near) for T in own]), exhaustive=False)
-            q_T_c = torch.cat([own[:, None], q_T_c], dim=1)
-            ok = torch.cat([torch.ones(len(within), 1, dtype=torch.bool), ok.bool()], dim=1)
-            ccs, scr = (torch.cat([torch.tensor([[getattr(loops[i], k)] for i in within], dtype=torch.float64),
-                                   x.double()], dim=1) for k, x in (("ccs", ccs), ("scr", scr)))
-            at = best(ok, ccs, cols=range(5))
-            for j, i in enumerate(within):
+                                                      torch.cat([starts(T, fp.centre, fp.radius, near) for T in own]),
+                                                      exhaustive=True)
+            at = best(ok, ccs)
+            flag = elsewhere(q_T_c, ok, self.gate.model, at, near=False).tolist()
+            for j, (i, amb) in enumerate(zip(within, flag)):
                 out[i] = self._moved(out[i], q_T_c[j], ccs[j], scr[j], int(at[j]))
+                if amb:
+                    out[i] = replace(out[i], ambiguous=True)
+            self.stats.ambiguous_loops += sum(flag)
         return out
 
     def _verify_starts(self, kf: Keyframe, ref_ids: list[int], inits: torch.Tensor, exhaustive: bool):

@@ -378,7 +378,9 @@ class LoopConfig:
     # check_ambiguity), and within a group when they differ from the estimate's prediction by
     # more than best_nearby_rot_deg or best_nearby_trans_mm (method.md's release gate for a
     # false loop; 0, 0: every loop); on ribs closer than the gate's tolerance a loop one
-    # period off verifies and would pass it (tactile_slam/loop/ambiguity.py, docs/loops.md)
+    # period off verifies and would pass it (tactile_slam/loop/ambiguity.py, docs/loops.md).
+    # Such a loop within a group is also marked ambiguous when another start of
+    # ambiguity.starts verifies elsewhere (a lattice coarser than the shifts, e.g. a knurl)
     best_nearby: bool = True
     best_nearby_rot_deg: float = 1.0
     best_nearby_trans_mm: float = 0.3

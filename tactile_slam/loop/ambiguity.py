@@ -22,7 +22,7 @@ verified at a pose beyond the gate's base tolerance from it.
 Used by the back end for every loop between two groups (``loop.check_ambiguity``; with
 ``loop.best_nearby`` or probes on, the near starts first choose the loop's pose, and do not
 count as elsewhere), for loops within a group that differ from the estimate's prediction
-(:func:`nearby` alone, ``loop.best_nearby``), and by probes (:mod:`tactile_slam.loop.probe`; every start
+(``loop.best_nearby``, likewise), and by probes (:mod:`tactile_slam.loop.probe`; every start
 counts: a probe's prediction may itself be a period off, and only a unique alignment
 confirms it).
 """
@@ -74,32 +74,19 @@ def starts(q_T_c: torch.Tensor, centre: torch.Tensor, radius_m: float, near_m: f
     return torch.cat([q_T_c.double()[None], torch.cat(moves) @ q_T_c.double()])
 
 
-def nearby(q_T_c: torch.Tensor, near_m: float) -> torch.Tensor:
-    """A pose's near shifts alone: ``(4, 4, 4)`` float64, ``q_T_c`` shifted by ``near_m``
-    along +x, -x, +y, -y of ``q``'s sensor frame (the :data:`NEAR` starts of :func:`starts`).
-    With the pose's own result first they compete in :func:`best` with ``cols=range(5)``."""
-    if q_T_c.shape != (4, 4):
-        raise ValueError(f"need a (4, 4) pose, got {tuple(q_T_c.shape)}")
-    if not (math.isfinite(near_m) and near_m > 0.0):
-        raise ValueError(f"near shift must be finite and positive, got {near_m}")
-    return se3.shifts_xy(near_m) @ q_T_c.double()
-
-
-def best(ok: torch.Tensor, ccs: torch.Tensor, cols=None) -> torch.Tensor:
-    """Which of the competing starts gives the verified result with the highest CCS.
+def best(ok: torch.Tensor, ccs: torch.Tensor) -> torch.Tensor:
+    """Which of the competing starts, the first and the :data:`NEAR` ones of :func:`starts`
+    (``S`` = 12), gives the verified result with the highest CCS.
 
     Args:
         ok: ``(B, S)`` bool, which results passed the loop checks.
         ccs: ``(B, S)`` their CCS.
-        cols: the competing columns, the first start's first; default the first start and
-            the :data:`NEAR` ones of :func:`starts` (``S`` = 12); ``range(5)`` for a pose's
-            own result followed by those of its :func:`nearby` starts.
 
     Returns:
-        ``(B,)`` int64 start index, one of ``cols``; the first where none of them verified
-        (and where the first ties with the best).
+        ``(B,)`` int64 start index; the first where none of them verified (and where the
+        first ties with the best).
     """
-    idx = torch.tensor([0, *range(NEAR.start, NEAR.stop)] if cols is None else list(cols), device=ok.device)
+    idx = torch.tensor([0, *range(NEAR.start, NEAR.stop)], device=ok.device)
     if ok.shape != ccs.shape or ok.dim() != 2 or len(idx) == 0 or ok.shape[1] <= int(idx.max()) or int(idx.min()) < 0:
         raise ValueError(f"need (B, S > {int(idx.max()) if len(idx) else 0}) checks and CCS, got "
                          f"{tuple(ok.shape)} and {tuple(ccs.shape)}")
