@@ -198,8 +198,8 @@ def within_slope(normals: torch.Tensor, contact: torch.Tensor, max_slope: float,
 
     ``(B, H, W, 3)`` normals, ``(B, H, W)`` bool contact -> ``(B, H, W)`` bool.
     """
-    n_xy = torch.linalg.vector_norm(normals[..., :2], dim=-1)
-    flat = contact & (n_xy <= max_slope * normals[..., 2].abs())
+    n = normals.unbind(-1)  # squared sides: no square root, no (B, H, W, 2) copy
+    flat = contact & (n[0] * n[0] + n[1] * n[1] <= (max_slope * max_slope) * (n[2] * n[2]))
     b = contact.shape[0]
     kept = flat.reshape(b, -1).sum(1, dtype=torch.int64)
     enough = kept >= min_fraction * contact.reshape(b, -1).sum(1, dtype=torch.int64)
