@@ -96,6 +96,14 @@ class SensorConfig:
         return Path(self.model_path)
 
 
+def lower_limit(general: float | None, decoded_only: float | None, decoded: bool) -> float | None:
+    """The limit that holds for a frame: ``general``, and for a frame decoded from an image
+    also ``decoded_only``, the lower where both apply; None where neither does (the slope
+    limits of :class:`NormalFlowConfig`, the tilt limits of :class:`TrackingConfig`)."""
+    limits = [x for x in (general, decoded_only if decoded else None) if x is not None]
+    return min(limits) if limits else None
+
+
 @dataclass
 class ContactConfig:
     """Contact-mask rule (method.md section 3.2) and the in-contact test (3.3).

@@ -1,6 +1,6 @@
 import pytest
 
-from tactile_slam.config import Config, ConfigError, digit, gelsight_mini, load_config
+from tactile_slam.config import Config, ConfigError, digit, gelsight_mini, load_config, lower_limit
 from tactile_slam.pipeline.offline import OfflinePipeline
 
 GELSLAM_YAML = """
@@ -153,3 +153,11 @@ def test_a_pipeline_validates_a_config_built_in_python(tmp_path):
     cfg.recon.voxel_mm = -1.0
     with pytest.raises(ConfigError, match="recon.voxel_mm must be > 0"):
         OfflinePipeline(iter(()), cfg, tmp_path / "out")
+
+
+def test_lower_limit_holds_the_decoded_limit_only_for_decoded_frames():
+    assert lower_limit(10.0, 5.5, decoded=False) == 10.0
+    assert lower_limit(10.0, 5.5, decoded=True) == 5.5
+    assert lower_limit(0.5, 0.8, decoded=True) == 0.5  # the lower holds
+    assert lower_limit(None, 5.5, decoded=True) == 5.5 and lower_limit(None, 5.5, decoded=False) is None
+    assert lower_limit(None, None, decoded=True) is None

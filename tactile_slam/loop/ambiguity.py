@@ -86,10 +86,9 @@ def best(ok: torch.Tensor, ccs: torch.Tensor) -> torch.Tensor:
         ``(B,)`` int64 start index; the first where none of them verified (and where the
         first ties with the best).
     """
+    if ok.shape != ccs.shape or ok.dim() != 2 or ok.shape[1] < NEAR.stop:
+        raise ValueError(f"need (B, S > {NEAR.stop - 1}) checks and CCS, got {tuple(ok.shape)} and {tuple(ccs.shape)}")
     idx = torch.tensor([0, *range(NEAR.start, NEAR.stop)], device=ok.device)
-    if ok.shape != ccs.shape or ok.dim() != 2 or len(idx) == 0 or ok.shape[1] <= int(idx.max()) or int(idx.min()) < 0:
-        raise ValueError(f"need (B, S > {int(idx.max()) if len(idx) else 0}) checks and CCS, got "
-                         f"{tuple(ok.shape)} and {tuple(ccs.shape)}")
     score = torch.where(ok[:, idx], ccs[:, idx].double().nan_to_num(-math.inf), -math.inf)
     return idx[score.argmax(dim=1)]  # argmax takes the first of equal scores: the first start
 

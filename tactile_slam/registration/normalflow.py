@@ -27,7 +27,7 @@ import torch
 import torch.nn.functional as F
 from scipy.linalg.lapack import dposv
 
-from tactile_slam.config import JACOBIAN_KINDS, ConfigError, NormalFlowConfig
+from tactile_slam.config import JACOBIAN_KINDS, ConfigError, NormalFlowConfig, lower_limit
 from tactile_slam.geometry.frame import Frame, WindowBatch
 from tactile_slam.geometry.morphology import as_weights
 from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
@@ -238,14 +238,6 @@ def reference_settings(config: NormalFlowConfig) -> tuple:
             config.max_slope, config.jacobian, tuple(sorted(config.coarse_factors, reverse=True)))
 
 
-def slope_limit(config: NormalFlowConfig, decoded: bool) -> float | None:
-    """The steepest slope ``|n_xy| / |n_z|`` a reference's samples may have: ``max_slope``,
-    and for a frame decoded from an image also ``decoded_max_slope`` (the lower holds);
-    None for no limit."""
-    limits = [x for x in (config.max_slope, config.decoded_max_slope if decoded else None) if x is not None]
-    return min(limits) if limits else None
-
-
 @torch.inference_mode()
 def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype: torch.dtype | None = None
                       ) -> PreparedReference:
@@ -268,7 +260,7 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     b, h, w = ref.height.shape
     s = ref.mm_per_px / 1000.0
     gen = torch.Generator().manual_seed(config.seed) if config.selection == "random" else None
-    limit = slope_limit(config, ref.decoded)
+    limit = lower_limit(config.max_slope, config.decoded_max_slope, ref.decoded)  # steepest |n_xy| / |n_z|
     region = ref.contact if limit is None else within_slope(ref.normals, ref.contact, limit)
     idx, valid = select_samples(ref.curvature, region, config.n_samples, config.selection, gen,
                                 config.sample_cell_px)

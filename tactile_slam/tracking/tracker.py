@@ -44,7 +44,7 @@ from typing import Any, Protocol
 
 import torch
 
-from tactile_slam.config import NormalFlowConfig, TrackingConfig
+from tactile_slam.config import NormalFlowConfig, TrackingConfig, lower_limit
 from tactile_slam.geometry.frame import Frame, own_maps
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import prepare_reference, register_prepared
@@ -393,8 +393,8 @@ class Tracker:
         refusal makes the previous frame the keyframe (the lazy rule): the registration's
         error grows with the tilt, and the decoder under-reads tilts in proportion to them."""
         c = self.config
-        limits = [x for x in (c.max_tilt_deg, c.decoded_max_tilt_deg if frame.decoded else None) if x is not None]
-        ok = not limits or float(se3.tilt_deg(kf_T_frame)) <= min(limits)
+        limit = lower_limit(c.max_tilt_deg, c.decoded_max_tilt_deg, frame.decoded)
+        ok = limit is None or float(se3.tilt_deg(kf_T_frame)) <= limit
         self.tilted += not ok
         return ok
 
