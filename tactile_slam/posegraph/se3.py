@@ -85,6 +85,14 @@ def tilt_deg(a_T_b: torch.Tensor) -> torch.Tensor:
     return torch.rad2deg(torch.arccos(cos))
 
 
+def twist_deg(a_T_b: torch.Tensor) -> torch.Tensor:
+    """In-plane part of relative poses ``(..., 4, 4)``: the angle in degrees, in [0, 180], of
+    the rotation left about the sensor axis once the tilt is taken out (swing-twist split,
+    ``2 atan2(|q_z|, q_w)``); ``(...)``."""
+    R = a_T_b[..., :3, :3]
+    return torch.rad2deg(torch.atan2(R[..., 1, 0] - R[..., 0, 1], R[..., 0, 0] + R[..., 1, 1]).abs())
+
+
 def shifts_xy(distance_m: float) -> torch.Tensor:
     """Translations by ``distance_m`` along +x, -x, +y and -y: ``(4, 4, 4)`` float64 (the
     nearby starts of the tracker's keyframe check and of the loop ambiguity check)."""

@@ -35,6 +35,17 @@ def test_tilt_deg_is_the_angle_between_the_sensor_axes(dtype):
     assert float(se3.tilt_deg(T[4])) == pytest.approx(180.0)
 
 
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_twist_deg_is_the_turn_about_the_sensor_axis_left_after_the_tilt(dtype):
+    T = torch.stack([rigid(rx_deg=20.0), rigid(rz_deg=90.0, tx_mm=3.0), rigid(rz_deg=-30.0),
+                     rigid(rx_deg=12.0, rz_deg=40.0), rigid(ry_deg=-9.0, rz_deg=150.0)]).to(dtype)
+    got = se3.twist_deg(T)
+    assert got.shape == (5,) and got.dtype == dtype
+    torch.testing.assert_close(got.double(), torch.tensor([0.0, 90.0, 30.0, 40.0, 150.0], dtype=torch.float64),
+                               atol=1e-4, rtol=0)
+    torch.testing.assert_close(se3.twist_deg(se3.inverse(T)), got)  # the same either way round
+
+
 def _decoded(kfs: list[Keyframe]) -> list[Keyframe]:
     return [Keyframe(k.id, k.session, replace(k.frame, decoded=True), k.new_session, k.prev_T_kf) for k in kfs]
 
