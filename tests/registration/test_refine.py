@@ -11,7 +11,7 @@ from tactile_slam.config import Config
 from tactile_slam.geometry.frame import Frame, FrameBuilder
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import register
-from tactile_slam.registration.refine import pressed_core, refine_edges
+from tactile_slam.registration.refine import midpoint, pressed_core, refine_both_ways, refine_edges
 from tactile_slam.registration.result import RegistrationError, pose_error
 from tests.registration.surfaces import Surface, frames, rigid, textured
 
@@ -42,6 +42,49 @@ def test_refined_loops_are_closer_to_the_truth(scene):
     # measured 2026-11-29: 0.049 -> 0.043 and 0.163 -> 0.040 deg (0.11 -> 0.06 / 0.04 with top-k samples)
     assert bool((rot1 <= rot0 + 0.005).all()) and float(rot1.max()) < 0.06, (rot0, rot1)
     assert float(tr1.max()) < 0.01
+
+
+def test_both_ways_are_the_two_one_way_measurements_and_their_midpoint(scene):
+    f, truths = scene
+    measured = se3.inverse(register(Frame.cat([f[0], f[0]]), Frame.cat([f[1], f[2]]), None, NF).tar_T_ref.double())
+    both = refine_both_ways([f[0], f[0]], [f[1], f[2]], measured, NF)
+    forward, ok_f = refine_edges([f[0], f[0]], [f[1], f[2]], measured, NF)
+    backward, ok_r = refine_edges([f[1], f[2]], [f[0], f[0]], se3.inverse(measured), NF)
+    assert both.forward_ok.tolist() == ok_f.tolist() == [True, True] and both.reverse_ok.tolist() == ok_r.tolist()
+    torch.testing.assert_close(both.forward, forward, atol=1e-6, rtol=0)  # batches of 4 and 2 pairs
+    torch.testing.assert_close(both.reverse, se3.inverse(backward), atol=1e-6, rtol=0)
+    torch.testing.assert_close(both.ref_T_tar, midpoint(both.forward, both.reverse), atol=1e-12, rtol=0)
+    # the midpoint is no farther from the truth than the farther of the two measurements
+    true_ref_T_tar = se3.inverse(truths)
+    errors = [pose_error(x, true_ref_T_tar)[0] for x in (both.forward, both.reverse, both.ref_T_tar)]
+    assert bool((errors[2] <= torch.maximum(errors[0], errors[1]) + 1e-6).all()) and float(errors[2].max()) < 0.06
+    rot, tilt, twist, trans = both.asymmetry()
+    r2, t2 = pose_error(both.forward, both.reverse)
+    torch.testing.assert_close(rot, r2)
+    torch.testing.assert_close(trans, t2)
+    assert bool((tilt <= rot + 1e-9).all() & (twist <= rot + 1e-9).all())
+
+
+def test_midpoint_is_halfway_on_the_geodesic():
+    a = torch.stack([rigid(rx_deg=3.0, tx_mm=1.0), rigid(rz_deg=-20.0, ty_mm=2.0)])
+    b = torch.stack([rigid(rx_deg=5.0, rz_deg=4.0, tx_mm=1.4), rigid(rz_deg=20.0, ty_mm=-2.0)])
+    m = midpoint(a, b)
+    torch.testing.assert_close(se3.inverse(a) @ m, se3.inverse(m) @ b, atol=1e-12, rtol=0)
+    torch.testing.assert_close(midpoint(a, a), a, atol=1e-12, rtol=0)
+    rot, _ = pose_error(m[1:], torch.eye(4, dtype=torch.float64)[None])
+    assert float(rot[0]) == pytest.approx(0.0, abs=1e-9)  # -20 and +20 deg about z: the identity turn
+
+
+def test_both_ways_without_measurement_keep_the_input(scene):
+    f, _ = scene
+    far = rigid(tx_mm=30.0)[None]
+    both = refine_both_ways([f[0]], [f[1]], far, NF)
+    assert both.forward_ok.tolist() == both.reverse_ok.tolist() == [False]
+    torch.testing.assert_close(both.ref_T_tar, far)
+    empty = refine_both_ways([], [], torch.zeros(0, 4, 4, dtype=torch.float64), NF)
+    assert empty.ref_T_tar.shape == (0, 4, 4) and empty.forward_ok.shape == (0,)
+    with pytest.raises(RegistrationError, match="B reference"):
+        refine_both_ways([f[0]], [f[1], f[2]], far, NF)
 
 
 def test_batch_equals_single_pairs(scene):
