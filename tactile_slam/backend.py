@@ -13,20 +13,20 @@ the group's root session) up to date. Per keyframe (offline step order of method
    between groups that verify elsewhere are marked ambiguous, and loops that stray from the
    estimate or join groups move to the best-scoring alignment nearby, ``loop.best_nearby``);
    for loops between two groups that still lack a second query keyframe, probe a predicted
-   pair (``loop.probes``, :mod:`tactile_slam.loop.probe`);
+   pair (``loop.probes``, :mod:`tactile_slam.loop.probe`); re-measure them over every contact
+   pixel of both keyframes (``posegraph.refine_loops``, ``refine_both_ways``,
+   :mod:`tactile_slam.registration.refine`; not in the ``only_sift`` ablation, whose point
+   is the SIFT measurement) and hold those whose two directions disagree;
 3. decide which verified loops enter the graph (:class:`~tactile_slam.loop.consistency.LoopGate`,
    ``loop.consistency``): a loop within the keyframe's group that agrees with the current
    estimate within the drift tolerance is accepted, one far beyond it rejected; the others,
    and loops into another group, wait until enough of them agree with each other (a
    symmetric or periodic object verifies false loops that no two-keyframe test can reject;
    docs/loops.md);
-4. add every accepted loop as a between factor (``posegraph.refine_loops``: re-measured by
-   NormalFlow over every contact pixel, :mod:`tactile_slam.registration.refine`, except in
-   the ``only_sift`` ablation whose point is the SIFT measurement); merge the groups they
-   connect (the root is the group with most keyframes, ties to the new keyframe's group),
-   moving each absorbed group rigidly through a loop measurement before solving (the
-   public code leaves absorbed poses at their identity-anchored values) and removing its
-   prior;
+4. add every accepted loop as a between factor; merge the groups they connect (the root
+   is the group with most keyframes, ties to the new keyframe's group), moving each
+   absorbed group rigidly through a loop measurement before solving (the public code
+   leaves absorbed poses at their identity-anchored values) and removing its prior;
 5. solve incrementally (only what the new factors disturb);
 6. insert the keyframe into the coverage set with its solved pose, refresh the poses of
    the keyframes the solve moved, and merge the coverage graphs of merged groups;
@@ -38,7 +38,7 @@ from __future__ import annotations
 import json
 import math
 import time
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -56,7 +56,7 @@ from tactile_slam.posegraph import se3
 from tactile_slam.posegraph.graph import PoseGraph
 from tactile_slam.posegraph.incremental import IncrementalSolver
 from tactile_slam.posegraph.sessions import SessionGroups
-from tactile_slam.registration.refine import pressed_core, refine_edges
+from tactile_slam.registration.refine import BothWays, pressed_core, refine_both_ways, refine_edges
 from tactile_slam.registration.result import pose_error
 from tactile_slam.tracking.keyframe import Keyframe
 
@@ -99,6 +99,25 @@ class _KeyframeView(Mapping):
         return len(self._keyframes)
 
 
+def asymmetric(both: BothWays, tilt_sigma_deg: Sequence[float | None], max_deg: float | None,
+               max_mm: float | None) -> torch.Tensor:
+    """Which loops measured both ways disagree with themselves: the two measurements'
+    rotations differ by more than ``max_deg`` (geodesic; on a loop that declares a tilt
+    sigma, its twist by more than ``max_deg`` or its tilt by more than
+    ``max(max_deg, sigma)``, as such a loop is scored) or their translations by more than
+    ``max_mm``; ``None`` limits nothing. Non-finite measurements count as disagreeing.
+    ``B`` loops -> ``(B,)`` bool."""
+    rot, tilt, twist, trans = both.asymmetry()
+    out = torch.zeros(len(rot), dtype=torch.bool)
+    if max_deg is not None:
+        sigma = torch.tensor([math.nan if s is None else s for s in tilt_sigma_deg], dtype=torch.float64)
+        split = ~((twist <= max_deg) & (tilt <= torch.fmax(sigma, torch.tensor(max_deg, dtype=torch.float64))))
+        out |= torch.where(torch.isnan(sigma), ~(rot <= max_deg), split)
+    if max_mm is not None:
+        out |= ~(trans <= max_mm)
+    return out
+
+
 def drift_model(config: Config) -> DriftModel:
     """The loop tolerance of ``config.loop``; rotations count as motion of the gel's corner
     (half the sensor diagonal)."""
@@ -128,6 +147,10 @@ class BackEnd:
         sigma = config.loop.decoded_tilt_sigma_deg
         if sigma is not None and not (math.isfinite(sigma) and sigma > 0.0):
             raise ValueError(f"loop.decoded_tilt_sigma_deg must be finite and > 0 or None, got {sigma}")
+        for name in ("max_asymmetry_deg", "max_asymmetry_mm"):
+            v = getattr(config.loop, name)
+            if v is not None and not v >= 0.0:
+                raise ValueError(f"loop.{name} must be >= 0 or None, got {v}")
         if not (config.loop.best_nearby_rot_deg >= 0.0 and config.loop.best_nearby_trans_mm >= 0.0):
             raise ValueError(f"loop.best_nearby_rot_deg and best_nearby_trans_mm must be >= 0, got "
                              f"{config.loop.best_nearby_rot_deg} and {config.loop.best_nearby_trans_mm}")
@@ -144,6 +167,7 @@ class BackEnd:
                                config.loop.merge_distinct, config.loop.merge_cycles, config.loop.trust_repetitive)
                      if config.loop.consistency else None)
         self._tilted: list[Loop] = []  # verified loops held by the decoded tilt limit
+        self._asymmetric: list[Loop] = []  # verified loops whose two re-measurements disagree
         self._last_in_session: dict[int, int] = {}
         self._probed: set[tuple[int, int]] = set()
         self._group_view = _KeyframeView(self.keyframes, self.sessions.group_of)  # -> group id
@@ -196,19 +220,17 @@ class BackEnd:
             loops = loops + self._within_tilt(self._probe(loops))
             loops = [lp if self._depth_known(lp.ref_id, lp.tar_id) else replace(lp, depth_known=False) for lp in loops]
             loops = [self._declare_tilt(lp) for lp in loops]
+        t_refine = time.perf_counter()
+        loops = self._remeasure(loops)
         t1 = time.perf_counter()
-        self.stats.time_loop_detection.append(t1 - t0)
+        self.stats.time_refine.append(t1 - t_refine)
+        self.stats.time_loop_detection.append(t_refine - t0)
 
         if self.gate is not None:
             sel = self.gate.select(loops, self.sessions.group_of, self.graph.pose)
             loops, joins = sel.accepted, sel.merges
         else:
             joins = [(kf.id, lp.ref_id, lp.ref_T_tar) for lp in loops]
-        t_refine = 0.0
-        if loops and self.config.posegraph.refine_loops and self.detector.mode != "only_sift":
-            t0 = time.perf_counter()
-            loops = self._refine(loops)
-            t_refine = time.perf_counter() - t0
         for loop in loops:
             self.graph.add_between(loop.ref_id, loop.tar_id, loop.ref_T_tar, self._loop_sigma(loop), kind="loop")
             if self.gate is not None:
@@ -220,8 +242,7 @@ class BackEnd:
         self.stats.loops += len(loops)
         self.solver.update()
         t2 = time.perf_counter()
-        self.stats.time_pose_graph.append(t2 - t1 - t_refine)
-        self.stats.time_refine.append(t_refine)
+        self.stats.time_pose_graph.append(t2 - t1)
 
         root = self.sessions.group_of(kf.id)
         changed = {root} | {self.sessions.find(m.root) for m in merges}
@@ -446,22 +467,38 @@ class BackEnd:
         return (fp is not None and fp.radius > 0.0
                 and (trust_repetitive or not self.detector.is_repetitive(self.keyframes[kf_id])))
 
-    def _refine(self, loops: list[Loop]) -> list[Loop]:
-        """Accepted loops re-measured over ``posegraph.refine_n_samples`` reference pixels
-        (every contact pixel by default; with ``posegraph.refine_core``, of the pressed core,
-        :func:`~tactile_slam.registration.refine.pressed_core`); a loop whose refinement
-        fails its checks keeps its first measurement. Each keyframe's maps are expanded (and
+    def _remeasure(self, loops: list[Loop]) -> list[Loop]:
+        """Verified ``loops`` re-measured over ``posegraph.refine_n_samples`` pixels (every
+        contact pixel by default; with ``posegraph.refine_core``, of the pressed core,
+        :func:`~tactile_slam.registration.refine.pressed_core`), before the loop gate sees
+        them; not in the ``only_sift`` ablation, whose point is the SIFT measurement. With
+        ``posegraph.refine_both_ways`` each is measured over both keyframes' pixels
+        (:func:`~tactile_slam.registration.refine.refine_both_ways`) and a loop whose two
+        measurements disagree beyond ``loop.max_asymmetry_deg`` / ``max_asymmetry_mm`` is
+        held (:meth:`held_loops`, reason ``asymmetric``). A loop no measurement of which
+        passes its checks keeps its verified value. Each keyframe's maps are expanded (and
         narrowed) once, however many of the loops it ends."""
         cfg = self.config
+        if not loops or not cfg.posegraph.refine_loops or self.detector.mode == "only_sift":
+            return loops
         frame = {i: self.keyframes[i].frame for i in {e for lp in loops for e in (lp.ref_id, lp.tar_id)}}
         if cfg.posegraph.refine_core:
             frame = {i: pressed_core(f, cfg.depth_test, cfg.contact.height_percentile) for i, f in frame.items()}
-        Zs, ok = refine_edges([frame[lp.ref_id] for lp in loops], [frame[lp.tar_id] for lp in loops],
-                              torch.stack([lp.ref_T_tar for lp in loops]), self.detector.nf_config,
-                              cfg.posegraph.refine_n_samples)
+        args = ([frame[lp.ref_id] for lp in loops], [frame[lp.tar_id] for lp in loops],
+                torch.stack([lp.ref_T_tar for lp in loops]), self.detector.nf_config, cfg.posegraph.refine_n_samples)
+        if cfg.posegraph.refine_both_ways:
+            both = refine_both_ways(*args)
+            Zs, ok = both.ref_T_tar, both.forward_ok | both.reverse_ok
+            held = asymmetric(both, [lp.tilt_sigma_deg for lp in loops], cfg.loop.max_asymmetry_deg,
+                              cfg.loop.max_asymmetry_mm).tolist()
+        else:
+            Zs, ok = refine_edges(*args)
+            held = [False] * len(loops)
         self.stats.refined += int(ok.sum())
         self.stats.refine_failed += int((~ok).sum())
-        return [replace(lp, ref_T_tar=Z) for lp, Z in zip(loops, Zs)]
+        out = [replace(lp, ref_T_tar=Z) for lp, Z in zip(loops, Zs)]
+        self._asymmetric += [lp for lp, h in zip(out, held) if h]
+        return [lp for lp, h in zip(out, held) if not h]
 
     def summary(self) -> dict:
         """The paper's statistics (Table II/V) and median times per keyframe in ms."""
@@ -482,6 +519,7 @@ class BackEnd:
             "probe_loops": st.probe_loops,
             "probes_ambiguous": st.probes_ambiguous,
             "tilted_loops": len(self._tilted),
+            "asymmetric_loops": len(self._asymmetric),
             "timing_ms_per_keyframe": {"loop_detection": med(st.time_loop_detection),
                                        "pose_graph": med(st.time_pose_graph),
                                        "coverage": med(st.time_coverage),
@@ -493,7 +531,8 @@ class BackEnd:
         with its ``reason``: ``tilted`` (:meth:`_within_tilt`), then the gate's
         (:meth:`~tactile_slam.loop.consistency.LoopGate.held`; without the gate,
         ``loop.consistency: false``, every other verified loop is accepted)."""
-        held = [(loop, "tilted") for loop in self._tilted] + (self.gate.held() if self.gate is not None else [])
+        held = ([(loop, "tilted") for loop in self._tilted] + [(loop, "asymmetric") for loop in self._asymmetric]
+                + (self.gate.held() if self.gate is not None else []))
         return [loop.to_dict() | {"reason": reason} for loop, reason in held]
 
     def write(self, out_dir: Path) -> None:

@@ -412,6 +412,14 @@ class LoopConfig:
     # re-measures the loop): NormalFlow's verification is specified and tested up to 15 deg
     # of tilt (docs/registration.md); None: no limit. Gradients given as input are not limited.
     decoded_max_tilt_deg: float | None = 15.0
+    # loops measured both ways (posegraph.refine_both_ways) whose two measurements disagree
+    # by more than this rotation or translation are held ("asymmetric" in loops_held.json):
+    # one of them is then off by at least half of it, and method.md's release gate allows a
+    # loop 1 deg and 0.3 mm (docs/loops.md, "Loops measured both ways"). The out-of-plane
+    # part is allowed max(max_asymmetry_deg, tilt_sigma_deg) on loops that declare a tilt
+    # sigma (decoded images). None: no limit
+    max_asymmetry_deg: float | None = 1.0
+    max_asymmetry_mm: float | None = 0.3
     coverage_overlap_mm2: float = 50 * 0.0634**2
     coverage_symmetric: bool = False  # overlap = min of both directions ([Rec] option)
     coverage_depth_gate_mm: float | None = None  # count overlap only within this depth
@@ -435,11 +443,16 @@ class PoseGraphConfig:
     gnc_mu_step: float = 1.4
     gnc_max_iters: int = 100
     reinit_merged: bool = True
-    # accepted loops re-measured by NormalFlow from their first value over refine_n_samples
-    # reference pixels (None: every contact pixel), except in the only_sift ablation
-    # (tactile_slam/registration/refine.py)
+    # verified loops re-measured by NormalFlow from their first value over refine_n_samples
+    # reference pixels (None: every contact pixel) before the loop gate, except in the
+    # only_sift ablation (tactile_slam/registration/refine.py)
     refine_loops: bool = True
     refine_n_samples: int | None = None
+    # ... in both directions: also the target's pixels against the reference, the loop's
+    # value the midpoint of the two where both pass their checks
+    # (registration/refine.py refine_both_ways; loop.max_asymmetry_* holds a loop whose two
+    # measurements disagree)
+    refine_both_ways: bool = True
     # ... over the pressed core of each keyframe's contact: the pixels that also pass the
     # contact depth test (contact.height_threshold_mm / height_fraction). Image input
     # already has that contact; a looser given mask's rim biases the tilt

@@ -112,7 +112,8 @@ def test_contact_loss_sessions_merge_with_loops(contact_loss_episode, tmp_path):
     held = json.loads((tmp_path / "full" / "loops_held.json").read_text())
     reasons = [lp["reason"] for lp in held]
     gate = full.stats["loop_gate"]
-    assert set(reasons) <= {"repetitive", "ambiguous", "inconsistent", "waiting", "doubtful"}
+    assert set(reasons) <= {"asymmetric", "repetitive", "ambiguous", "inconsistent", "waiting", "doubtful"}
+    assert reasons.count("asymmetric") == full.stats["asymmetric_loops"]
     assert reasons.count("waiting") + reasons.count("doubtful") == gate["pending"]
     assert reasons.count("repetitive") + reasons.count("ambiguous") == gate["repetitive"]
     assert reasons.count("inconsistent") == gate["rejected_consistency"]
