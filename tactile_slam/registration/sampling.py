@@ -189,21 +189,28 @@ def _spread_batch(score: torch.Tensor, pixel: torch.Tensor, inside: torch.Tensor
 
 def within_slope(normals: torch.Tensor, contact: torch.Tensor, max_slope: float,
                  min_fraction: float = 0.25) -> torch.Tensor:
-    """The contact pixels whose surface slope ``|n_xy| / |n_z|`` is at most ``max_slope``:
+    """The contact pixels whose surface slope ``|n_xy| / |n_z|`` is at most ``max_slope``
+    (NaN counts as steeper): the gel's smoothing bends steep slopes of tilted touches, and
     where the slopes were decoded from an image, steeper ones lie beyond what the
     calibration presses showed the decoder, which flattens them (docs/registration.md,
-    "Steep pixels from video"). A frame keeps its whole contact when fewer than
-    ``min_fraction`` of its contact pixels are that flat: a touch that is mostly steep is
-    registered on its flattened slopes rather than on a sliver.
+    "Steep pixels through the gel", "Steep pixels from video"). A frame keeps its whole
+    contact when fewer than ``min_fraction`` of its contact pixels are that flat: a touch
+    that is mostly steep is registered on its flattened slopes rather than on a sliver.
+    Only the contact pixels are read.
 
     ``(B, H, W, 3)`` normals, ``(B, H, W)`` bool contact -> ``(B, H, W)`` bool.
     """
-    n = normals.unbind(-1)  # squared sides: no square root, no (B, H, W, 2) copy
-    flat = contact & (n[0] * n[0] + n[1] * n[1] <= (max_slope * max_slope) * (n[2] * n[2]))
     b = contact.shape[0]
-    kept = flat.reshape(b, -1).sum(1, dtype=torch.int64)
-    enough = kept >= min_fraction * contact.reshape(b, -1).sum(1, dtype=torch.int64)
-    return torch.where(enough[:, None, None], flat, contact)
+    idx = flat_nonzero(contact)  # only the contact pixels are tested: a few thousand of the image's
+    n = normals.reshape(-1, 3).index_select(0, idx).unbind(-1)
+    # squared sides: no square root; NaN counts as steep
+    steep = ~(n[0] * n[0] + n[1] * n[1] <= (max_slope * max_slope) * (n[2] * n[2]))
+    frame = idx // contact[0].numel()
+    total = torch.bincount(frame, minlength=b)
+    enough = total - torch.bincount(frame[steep], minlength=b) >= min_fraction * total
+    out = contact.clone()
+    out.view(-1)[idx[steep & enough[frame]]] = False
+    return out
 
 
 def _check_scores(score: torch.Tensor) -> None:

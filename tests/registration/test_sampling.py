@@ -278,3 +278,9 @@ def test_within_slope_keeps_the_flatter_contact_pixels(device, dtype):
     assert torch.equal(within_slope(normals[:1], contact[:1], 0.5), kept[:1])  # per frame
     empty = torch.zeros_like(contact)
     assert not within_slope(normals, empty, 0.5).any()
+    # a NaN normal counts as steep: dropped, the rest of its frame as before
+    r, c = (kept[1].nonzero()[0]).tolist()
+    bad = normals.clone()
+    bad[1, r, c] = float("nan")
+    dropped = within_slope(bad, contact, 0.5)
+    assert not dropped[1, r, c] and int((dropped ^ kept).sum()) == 1
