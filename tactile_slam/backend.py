@@ -46,6 +46,7 @@ import numpy as np
 import torch
 
 from tactile_slam.config import Config
+from tactile_slam.eval.loop_metrics import within_tolerance
 from tactile_slam.loop.ambiguity import best, elsewhere, starts
 from tactile_slam.loop.consistency import DriftModel, LoopGate
 from tactile_slam.loop.coverage import CoverageSet
@@ -101,21 +102,17 @@ class _KeyframeView(Mapping):
 
 def asymmetric(both: BothWays, tilt_sigma_deg: Sequence[float | None], max_deg: float | None,
                max_mm: float | None) -> torch.Tensor:
-    """Which loops measured both ways disagree with themselves: the two measurements'
-    rotations differ by more than ``max_deg`` (geodesic; on a loop that declares a tilt
-    sigma, its twist by more than ``max_deg`` or its tilt by more than
-    ``max(max_deg, sigma)``, as such a loop is scored) or their translations by more than
-    ``max_mm``; ``None`` limits nothing. Non-finite measurements count as disagreeing.
-    ``B`` loops -> ``(B,)`` bool."""
-    rot, tilt, twist, trans = both.asymmetry()
-    out = torch.zeros(len(rot), dtype=torch.bool)
-    if max_deg is not None:
-        sigma = torch.tensor([math.nan if s is None else s for s in tilt_sigma_deg], dtype=torch.float64)
-        split = ~((twist <= max_deg) & (tilt <= torch.fmax(sigma, torch.tensor(max_deg, dtype=torch.float64))))
-        out |= torch.where(torch.isnan(sigma), ~(rot <= max_deg), split)
-    if max_mm is not None:
-        out |= ~(trans <= max_mm)
-    return out
+    """Which loops measured both ways disagree with themselves: the two measurements differ
+    by more than a loop may differ from the truth under the evaluation's rule
+    (:func:`~tactile_slam.eval.loop_metrics.within_tolerance` with ``max_deg`` and
+    ``max_mm``: geodesic rotation, or on a loop that declares a tilt sigma, twist and tilt
+    within ``max(max_deg, sigma)``); ``None`` limits nothing. Non-finite measurements count
+    as disagreeing. ``B`` loops -> ``(B,)`` bool."""
+    rot, tilt, twist, trans = (x.numpy() for x in both.asymmetry())
+    sigma = np.array([math.nan if s is None else s for s in tilt_sigma_deg], dtype=np.float64)
+    agree = within_tolerance(rot, tilt, twist, trans, sigma, math.inf if max_deg is None else max_deg,
+                             math.inf if max_mm is None else max_mm)
+    return torch.from_numpy(~agree)
 
 
 def drift_model(config: Config) -> DriftModel:

@@ -23,10 +23,12 @@ of frame j's sensor in frame i's sensor frame, metres). Against the ground truth
 from __future__ import annotations
 
 import numpy as np
+import torch
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
 from tactile_slam.eval.tracking_metrics import geodesic_deg
+from tactile_slam.posegraph import se3
 
 REACH_M = 0.03  # sensors more than 30 mm apart cannot share a patch
 
@@ -73,10 +75,22 @@ def loop_flags(loops: list[dict]) -> tuple[np.ndarray, np.ndarray]:
 def tilt_twist_deg(rot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Swing-twist split of rotations ``(..., 3, 3)`` about the sensor's z axis: the tilt
     (the angle the rotation turns the z axis by) and the twist (the remaining rotation
-    about z, ``2 atan2(q_z, q_w)`` of its quaternion), both ``(...,)`` degrees in [0, 180]."""
-    tilt = np.degrees(np.arccos(np.clip(rot[..., 2, 2], -1.0, 1.0)))
-    twist = np.degrees(np.abs(np.arctan2(rot[..., 1, 0] - rot[..., 0, 1], rot[..., 0, 0] + rot[..., 1, 1])))
-    return tilt, twist
+    about z), both ``(...,)`` degrees in [0, 180] (:func:`~tactile_slam.posegraph.se3.tilt_deg`,
+    :func:`~tactile_slam.posegraph.se3.twist_deg`)."""
+    r = torch.from_numpy(np.asarray(rot, dtype=np.float64))
+    return se3.tilt_deg(r).numpy(), se3.twist_deg(r).numpy()
+
+
+def within_tolerance(rot_deg: np.ndarray, tilt_deg: np.ndarray, twist_deg: np.ndarray, trans_mm: np.ndarray,
+                     tilt_sigma_deg: np.ndarray, rot_tol_deg: float, trans_tol_mm: float) -> np.ndarray:
+    """The module's rule for a loop's error (or any relative-pose difference), ``(K,)``
+    arrays each: the translation within ``trans_tol_mm`` and, where ``tilt_sigma_deg`` is
+    NaN, the geodesic rotation within ``rot_tol_deg``; where a tilt sigma is declared, the
+    twist within ``rot_tol_deg`` and the tilt within ``max(rot_tol_deg, sigma)``. NaN
+    errors are outside. -> ``(K,)`` bool."""
+    near = trans_mm <= trans_tol_mm
+    declared = near & (twist_deg <= rot_tol_deg) & (tilt_deg <= np.fmax(rot_tol_deg, tilt_sigma_deg))
+    return np.where(np.isnan(tilt_sigma_deg), near & (rot_deg <= rot_tol_deg), declared)
 
 
 def loop_precision_recall(pairs: np.ndarray, i_T_j: np.ndarray, object_T_sensor: np.ndarray,
@@ -111,8 +125,7 @@ def loop_precision_recall(pairs: np.ndarray, i_T_j: np.ndarray, object_T_sensor:
         if len(sigma) != len(pairs):
             raise ValueError(f"{len(pairs)} loop pairs but {len(sigma)} tilt sigmas")
         tilt, twist = tilt_twist_deg(err[:, :3, :3])
-        split = (dt <= trans_tol_mm) & (twist <= rot_tol_deg) & (tilt <= np.fmax(rot_tol_deg, sigma))
-        ok = np.where(np.isnan(sigma), full, split)
+        ok = within_tolerance(dr, tilt, twist, dt, sigma, rot_tol_deg, trans_tol_mm)
     out = {
         "reported": int(len(pairs)),
         "correct": int(ok.sum()),

@@ -79,16 +79,17 @@ def inverse(T: torch.Tensor) -> torch.Tensor:
 
 
 def tilt_deg(a_T_b: torch.Tensor) -> torch.Tensor:
-    """Out-of-plane part of relative poses ``(..., 4, 4)``: the angle in degrees between
-    the two frames' z axes (the sensor axis), ``(...)``; a turn about z alone has none."""
+    """Out-of-plane part of relative poses ``(..., 4, 4)`` (or their rotations
+    ``(..., 3, 3)``): the angle in degrees between the two frames' z axes (the sensor
+    axis), ``(...)``; a turn about z alone has none."""
     cos = a_T_b[..., 2, 2].clamp(-1.0, 1.0)
     return torch.rad2deg(torch.arccos(cos))
 
 
 def twist_deg(a_T_b: torch.Tensor) -> torch.Tensor:
-    """In-plane part of relative poses ``(..., 4, 4)``: the angle in degrees, in [0, 180], of
-    the rotation left about the sensor axis once the tilt is taken out (swing-twist split,
-    ``2 atan2(|q_z|, q_w)``); ``(...)``."""
+    """In-plane part of relative poses ``(..., 4, 4)`` (or their rotations ``(..., 3, 3)``):
+    the angle in degrees, in [0, 180], of the rotation left about the sensor axis once the
+    tilt is taken out (swing-twist split, ``2 atan2(|q_z|, q_w)``); ``(...)``."""
     R = a_T_b[..., :3, :3]
     return torch.rad2deg(torch.atan2(R[..., 1, 0] - R[..., 0, 1], R[..., 0, 0] + R[..., 1, 1]).abs())
 

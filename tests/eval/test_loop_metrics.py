@@ -3,7 +3,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from tactile_slam.eval.loop_metrics import (gt_loop_pairs, joinable_groups, loop_flags, loop_precision_recall,
-                                           overlap_mm2, relative_pose_errors, tilt_twist_deg)
+                                           overlap_mm2, relative_pose_errors, tilt_twist_deg,
+                                           within_tolerance)
 
 S_MM = 0.0634
 
@@ -69,6 +70,18 @@ def test_tilt_twist_split_against_quaternions():
     tilt, twist = tilt_twist_deg(pure)  # R = Rz Rx: a 7 deg or 4 deg swing after a turn about z
     np.testing.assert_allclose(tilt, [0.0, 7.0, 4.0], atol=1e-9)
     np.testing.assert_allclose(twist, [30.0, 0.0, 50.0], atol=1e-9)
+
+
+def test_within_tolerance_rule():
+    """Geodesic rotation without a declared sigma; twist and widened tilt with one; NaN is out."""
+    nan = np.nan
+    rot = np.array([0.9, 1.1, 3.0, 3.0, 0.5, 1.5, nan, 0.5])
+    tilt = np.array([0.9, 1.1, 3.0, 3.0, 0.5, 0.1, 0.0, 0.5])
+    twist = np.array([0.1, 0.1, 0.1, 0.1, 0.1, 1.5, 0.0, 0.1])
+    trans = np.array([0.1, 0.1, 0.1, 0.1, 0.31, 0.1, 0.1, nan])
+    sigma = np.array([nan, nan, nan, 5.44, 5.44, 5.44, nan, 5.44])
+    got = within_tolerance(rot, tilt, twist, trans, sigma, 1.0, 0.3)
+    assert got.tolist() == [True, False, False, True, False, False, False, False]
 
 
 def test_loops_with_a_declared_tilt_sigma_are_scored_within_it():
