@@ -85,6 +85,14 @@ def test_both_ways_without_measurement_keep_the_input(scene):
     assert empty.ref_T_tar.shape == (0, 4, 4) and empty.forward_ok.shape == (0,)
     with pytest.raises(RegistrationError, match="B reference"):
         refine_both_ways([f[0]], [f[1], f[2]], far, NF)
+    with pytest.raises(RegistrationError, match="NaN"):
+        refine_both_ways([f[0]], [f[1]], torch.full((1, 4, 4), float("nan"), dtype=torch.float64), NF)
+    with pytest.raises(RegistrationError, match="n_samples"):
+        refine_both_ways([f[0]], [f[1]], far, NF, n_samples=0)
+    # no contact on one side: neither direction can pass, the input stays
+    lifted = frames(Surface(depth=-1e-3), [torch.eye(4, dtype=torch.float64)])
+    none = refine_both_ways([lifted[0]], [f[1]], far, NF)
+    assert none.forward_ok.tolist() == none.reverse_ok.tolist() == [False] and torch.equal(none.ref_T_tar, far)
 
 
 def test_batch_equals_single_pairs(scene):
