@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,6 +29,15 @@ import yaml
 PACKAGE_ROOT = Path(__file__).resolve().parent
 REPO_ROOT = PACKAGE_ROOT.parent
 MODELS_DIR = REPO_ROOT / "models"
+GELSIGHT_MINI_ENV = "TACTILE_SLAM_GELSIGHT_MINI"
+
+
+def gelsight_mini_data() -> Path:
+    """The real GelSight Mini data folder (calibration presses, their ``background.png``,
+    the sensor maker's reference model): ``$TACTILE_SLAM_GELSIGHT_MINI`` when set, else
+    ``../shared/data/gelsight_mini`` beside the checkout. A checkout elsewhere (a git
+    worktree under /tmp) finds nothing there: set the variable."""
+    return Path(os.environ.get(GELSIGHT_MINI_ENV) or REPO_ROOT.parent / "shared" / "data" / "gelsight_mini")
 
 
 class ConfigError(ValueError):

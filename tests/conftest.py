@@ -3,14 +3,10 @@ torch's thread count restored after every test."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
 
-REPO = Path(__file__).resolve().parents[1]
-SHARED = REPO.parent / "shared"
-GELSIGHT_MINI = SHARED / "data" / "gelsight_mini"
+from tactile_slam.config import gelsight_mini_data
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
@@ -26,11 +22,13 @@ def dtype(request) -> torch.dtype:
 
 
 @pytest.fixture(scope="session")
-def mini_data() -> Path:
-    """The real GelSight Mini data in ../shared (skips when absent)."""
-    if not GELSIGHT_MINI.is_dir():
-        pytest.skip("../shared/data/gelsight_mini is not present")
-    return GELSIGHT_MINI
+def mini_data():
+    """The real GelSight Mini data folder (:func:`~tactile_slam.config.gelsight_mini_data`;
+    skips when absent)."""
+    path = gelsight_mini_data()
+    if not path.is_dir():
+        pytest.skip(f"{path} is not present")
+    return path
 
 
 @pytest.fixture(autouse=True)

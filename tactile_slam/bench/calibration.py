@@ -25,11 +25,11 @@ from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.calibration.train import LOSSES, TrainConfig, train_model
 from tactile_slam.cli.arguments import positive_int
 from tactile_slam.cli.devices import add_device_argument
-from tactile_slam.config import REPO_ROOT, load_config
+from tactile_slam.config import gelsight_mini_data, load_config
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", default=str(REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"),
+    p.add_argument("--data", default=str(gelsight_mini_data()),
                    help="folder holding calibration/ and reference_model/nnmodel.pth")
     p.add_argument("--hidden", default="16,16;32,32,32;64,64,64", help="sizes to compare, ';'-separated")
     p.add_argument("--seeds", type=positive_int, default=3, help="seeded splits per size (--split random)")

@@ -13,18 +13,16 @@ from tactile_slam.bench.common import time_fn, timing_stats, write_json
 from tactile_slam.calibration.model import GradientDecoder, load_model
 from tactile_slam.cli.arguments import positive_int
 from tactile_slam.cli.devices import add_device_argument
-from tactile_slam.config import REPO_ROOT, Config
+from tactile_slam.config import Config, gelsight_mini_data
 from tactile_slam.geometry.contact import colour_distance, colour_mask, contact_mask, zero_level
 from tactile_slam.geometry.curvature import curvature, normals_from_gradients
 from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.geometry.morphology import dilate
 from tactile_slam.geometry.poisson import integrate_exact
 
-DEFAULT_DATA = REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", default=str(DEFAULT_DATA), help="GelSight Mini data folder (calibration presses)")
+    p.add_argument("--data", default=str(gelsight_mini_data()), help="GelSight Mini data folder (calibration presses)")
     p.add_argument("--model", default=None,
                    help="calibration model (default: models/gelsight_mini.pt, else the reference model)")
     p.add_argument("--frames", type=positive_int, default=200, help="timed frames per setting")

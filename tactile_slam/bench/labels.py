@@ -38,11 +38,11 @@ from tactile_slam.calibration.evaluate import evaluate_model
 from tactile_slam.calibration.labels import DetectionConfig, PressLabel, detect_contact_circle
 from tactile_slam.calibration.model import load_model
 from tactile_slam.cli.arguments import positive_int
-from tactile_slam.config import REPO_ROOT, load_config
+from tactile_slam.config import gelsight_mini_data, load_config
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--data", default=str(REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"),
+    p.add_argument("--data", default=str(gelsight_mini_data()),
                    help="folder holding calibration/ and reference_model/nnmodel.pth")
     p.add_argument("--sets", type=positive_int, default=8, help="relit copies of the presses")
     p.add_argument("--gain", type=float, default=0.25, help="per-channel gains drawn from 1 +- this")

@@ -156,9 +156,11 @@ def episode_specs(args) -> list[EpisodeSpec]:
 
 
 def cached_episode(cache: Path, spec: EpisodeSpec, config: Config) -> Path:
-    """The episode folder of ``spec`` under ``cache``, simulated when missing or made by an
-    earlier motion revision."""
-    from tactile_slam.sim.episode import EpisodeError, SimulationSettings, read_episode, simulate_episode
+    """The episode folder of ``spec`` under ``cache``, simulated when missing, made by an
+    earlier motion revision or, at the image level, composed on another background than the
+    one found now (the real one appeared or went away)."""
+    from tactile_slam.sim.episode import (EpisodeError, SimulationSettings, load_background_image, read_episode,
+                                          simulate_episode)
     from tactile_slam.sim.motions import MOTION_REVISION
 
     path = cache / spec.name
@@ -166,8 +168,11 @@ def cached_episode(cache: Path, spec: EpisodeSpec, config: Config) -> Path:
     if done.is_file():
         try:
             ep = read_episode(path)
+            background = (ep.meta.get("image") or {}).get("background")
             if len(ep) == spec.frames and ep.meta.get("level") == spec.level \
-                    and ep.meta.get("motion_revision") == MOTION_REVISION:
+                    and ep.meta.get("motion_revision") == MOTION_REVISION \
+                    and (spec.level != "image"
+                         or background == load_background_image(None, config.sensor.shape)[1]):
                 return path
         except EpisodeError:
             pass
@@ -460,6 +465,8 @@ def merge_results(old: dict | None, new: dict) -> dict:
 
 
 def run(args) -> Path:
+    from tactile_slam.sim.episode import read_episode
+
     set_threads(args.threads)
     out_path = Path(args.out)
     old = previous_results(out_path) if args.append else None  # checked before any work
@@ -474,8 +481,9 @@ def run(args) -> Path:
         for spec in specs:
             t0 = time.perf_counter()
             ep_dir = cached_episode(cache, spec, Config())
+            background = (read_episode(ep_dir).meta.get("image") or {}).get("background")
             entry = {"name": spec.name, "object": spec.object, "seed": spec.seed, "kind": spec.kind,
-                     "level": spec.level, "frames": spec.frames, "table": spec.table,
+                     "level": spec.level, "background": background, "frames": spec.frames, "table": spec.table,
                      "simulate_or_load_s": time.perf_counter() - t0, "methods": {}}
             for m in spec.methods:
                 res, err = run_method(ep_dir, m, work / spec.name / m, config)

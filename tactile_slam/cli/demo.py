@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from tactile_slam.calibration.model import GradientDecoder, load_model
-from tactile_slam.config import REPO_ROOT, Config
+from tactile_slam.config import Config, gelsight_mini_data
 from tactile_slam.cli.arguments import output_folder
 from tactile_slam.cli.eval import evaluate_run
 from tactile_slam.eval.tracking_metrics import pose_vector
@@ -21,8 +21,6 @@ from tactile_slam.io.dispatch import open_source
 from tactile_slam.pipeline.offline import OfflinePipeline, RunOptions
 from tactile_slam.sim.episode import DEFAULT_COLOUR_MODEL, SimulationSettings, read_episode, simulate_episode
 from tactile_slam.viz import frame_panel, trajectory_report
-
-SHARED_MINI = REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"
 
 
 def register(sub) -> None:
@@ -58,9 +56,9 @@ def geometry_demo(out: Path) -> dict:
         "depth_mm": round(-float(frame.height.min()) * cfg.sensor.mm_per_px, 4),
         "contact_px": int(frame.contact.sum()),
     }
-    calib = SHARED_MINI / "calibration"
+    calib = gelsight_mini_data() / "calibration"
     if (calib / "background.png").is_file():
-        model_path = cfg.sensor.resolved_model_path() or SHARED_MINI / "reference_model" / "nnmodel.pth"
+        model_path = cfg.sensor.resolved_model_path() or gelsight_mini_data() / "reference_model" / "nnmodel.pth"
         model, _ = load_model(model_path)
         bg = torch.from_numpy(cv2.imread(str(calib / "background.png"))).float()
         builder = FrameBuilder(cfg, GradientDecoder(model, bg, cfg.contact.mlp_skip_color_dist))

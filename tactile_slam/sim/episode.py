@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import warnings
 import zipfile
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -34,7 +35,7 @@ import open3d as o3d
 import torch
 import yaml
 
-from tactile_slam.config import MODELS_DIR, REPO_ROOT, Config
+from tactile_slam.config import GELSIGHT_MINI_ENV, MODELS_DIR, Config, gelsight_mini_data
 from tactile_slam.eval.tracking_metrics import motion_range
 from tactile_slam.eval.trajectory import relative_to
 from tactile_slam.io.gradients import EPISODE_NPZ
@@ -47,11 +48,16 @@ LEVELS = ("gradients", "image")
 VIDEO, BACKGROUND, POSES, CONTACT, GRADIENTS, MESH, META = (
     VIDEO_NAME, "background.png", "gt_poses.npy", "in_contact.npy", EPISODE_NPZ, "object.ply", "meta.yaml")
 DEFAULT_COLOUR_MODEL = MODELS_DIR / "gelsight_mini_colour.pt"
-SHARED_BACKGROUND = REPO_ROOT.parent / "shared" / "data" / "gelsight_mini" / "calibration" / "background.png"
 
 
 class EpisodeError(ValueError):
     """An episode folder is missing files or holds inconsistent data."""
+
+
+class SyntheticBackgroundWarning(UserWarning):
+    """Images are composed on the synthetic background: the real one was not found. The
+    shipped decoder was trained on the real sensor's images, so image-level results then
+    measure a sensor it was not calibrated for."""
 
 
 # ---------------------------------------------------------------- image formation
@@ -70,10 +76,16 @@ def synthetic_background(shape: tuple[int, int]) -> np.ndarray:
 
 def load_background_image(path: str | Path | None, shape: tuple[int, int]) -> tuple[np.ndarray, str]:
     """``(background (H, W, 3) uint8, source)``: ``path``; else the real GelSight Mini
-    background in ``../shared`` when present; else :func:`synthetic_background`."""
-    if path is None and SHARED_BACKGROUND.is_file():
-        path = SHARED_BACKGROUND
+    background (``calibration/background.png`` under
+    :func:`~tactile_slam.config.gelsight_mini_data`) when present; else
+    :func:`synthetic_background`, with a :class:`SyntheticBackgroundWarning`."""
+    real = gelsight_mini_data() / "calibration" / "background.png"
+    if path is None and real.is_file():
+        path = real
     if path is None:
+        warnings.warn(f"no background at {real} (set ${GELSIGHT_MINI_ENV} to the GelSight Mini data folder): "
+                      "images are composed on a synthetic background that the shipped decoder was not "
+                      "calibrated on", SyntheticBackgroundWarning, stacklevel=2)
         return synthetic_background(shape), "synthetic"
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:

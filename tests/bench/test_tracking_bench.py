@@ -3,11 +3,13 @@ import json
 import math
 import time
 
+import cv2
 import pytest
 import yaml
 
 from tactile_slam.bench import tracking
-from tactile_slam.config import Config
+from tactile_slam.config import GELSIGHT_MINI_ENV, Config
+from tactile_slam.sim.episode import SyntheticBackgroundWarning, synthetic_background
 from tactile_slam.sim.motions import MOTION_REVISION
 
 
@@ -147,3 +149,23 @@ def test_targets_need_a_real_reduction():
     assert not got["holds"]
     assert tracking.targets(_summary({"nf": {"seed": 1.0}, "nf-kf": {"seed": 0.5}, "gelslam": {"seed": 0.49}})
                             )["gs_offline_beats_nf_rotation"]["holds"]
+
+
+def test_image_episode_is_simulated_again_when_the_background_changes(tmp_path, monkeypatch):
+    # image-level results depend on the background the frames were composed on: a cached
+    # episode made on the synthetic one (a checkout away from the real data) must not be
+    # reused once the real background is found, nor the other way round
+    (tmp_path / "mini" / "calibration").mkdir(parents=True)
+    real = tmp_path / "mini" / "calibration" / "background.png"
+    cv2.imwrite(str(real), synthetic_background((240, 320)) // 2 + 40)
+    monkeypatch.setenv(GELSIGHT_MINI_ENV, str(tmp_path / "mini"))
+    args = parse(tmp_path, "--objects", "seed", "--image-objects", "seed", "--seeds", "0", "--frames", "12",
+                 "--protocol", "tracking", "--level", "image", "--image-methods", "nf")
+    spec = tracking.episode_specs(args)[0]
+    path = tracking.cached_episode(tmp_path / "episodes", spec, Config())
+    assert yaml.safe_load((path / "meta.yaml").read_text())["image"]["background"] == str(real)
+    assert tracking.cached_episode(tmp_path / "episodes", spec, Config()) == path
+    monkeypatch.setenv(GELSIGHT_MINI_ENV, str(tmp_path / "absent"))
+    with pytest.warns(SyntheticBackgroundWarning):
+        tracking.cached_episode(tmp_path / "episodes", spec, Config())
+    assert yaml.safe_load((path / "meta.yaml").read_text())["image"]["background"] == "synthetic"

@@ -7,8 +7,9 @@ import yaml
 from tactile_slam.calibration.colour_model import ColourModel
 from tactile_slam.cli.main import main
 from tactile_slam.io.video import VideoSource
-from tactile_slam.sim.episode import (EpisodeError, SimulationSettings, compose_images, read_episode,
-                                      simulate_episode, synthetic_background)
+from tactile_slam.config import GELSIGHT_MINI_ENV, REPO_ROOT, gelsight_mini_data
+from tactile_slam.sim.episode import (EpisodeError, SimulationSettings, SyntheticBackgroundWarning, compose_images,
+                                      load_background_image, read_episode, simulate_episode, synthetic_background)
 from tactile_slam.sim.renderer import GelRenderer
 
 
@@ -65,6 +66,27 @@ def test_image_level_video_is_exact(tmp_path):
     # contact-free lead-in: image = background + model(0) + noise only
     lead = video[:10].astype(float) - bg - ColourModel.load(model_path)(torch.zeros(1, 240, 320, 2)).numpy()
     assert np.abs(lead).mean() < 1.5
+
+
+def test_background_from_the_gelsight_mini_folder(tmp_path, monkeypatch):
+    bg = np.full((240, 320, 3), 7, np.uint8)
+    (tmp_path / "calibration").mkdir()
+    cv2.imwrite(str(tmp_path / "calibration" / "background.png"), bg)
+    monkeypatch.setenv(GELSIGHT_MINI_ENV, str(tmp_path))
+    assert gelsight_mini_data() == tmp_path
+    img, source = load_background_image(None, (240, 320))
+    assert np.array_equal(img, bg) and source == str(tmp_path / "calibration" / "background.png")
+    monkeypatch.delenv(GELSIGHT_MINI_ENV)
+    assert gelsight_mini_data() == REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"
+
+
+def test_background_falls_back_to_synthetic_with_a_warning(tmp_path, monkeypatch):
+    # a checkout away from ../shared (a git worktree elsewhere) composed its images on the
+    # synthetic background without a word, and image-level results changed with the folder
+    monkeypatch.setenv(GELSIGHT_MINI_ENV, str(tmp_path / "absent"))
+    with pytest.warns(SyntheticBackgroundWarning, match=GELSIGHT_MINI_ENV):
+        img, source = load_background_image(None, (240, 320))
+    assert source == "synthetic" and np.array_equal(img, synthetic_background((240, 320)))
 
 
 def test_compose_images_noise_independent_of_batching():
