@@ -298,8 +298,15 @@ class TrackingConfig:
     # also registered against the previous frame, and a keyframe registration more than
     # this far in rotation from that chained result counts as failed (the lazy rule makes
     # the previous frame a keyframe). Registration against a keyframe held while the sensor
-    # rolls around a cylinder drifts with CCS still high; about 3 ms more per frame. None: off
+    # rolls around a cylinder drifts with CCS still high; about 3 ms more per checked frame.
+    # None: off
     f2f_check_deg: float | None = None
+    # ... only for frames whose keyframe registration is weakly constrained: its
+    # `conditioning` (NormalFlow's smallest-to-largest eigenvalue ratio) below this. Rolls
+    # and slides along an edge or groove leave a direction nearly free (docs/registration.md,
+    # "Degeneracy": 2.5e-3 to 3.4e-3 on a rounded edge, 0.11-0.49 on textured pairs; the
+    # class boundary used there is 1e-2). A NaN conditioning is checked. None: every frame
+    f2f_below_conditioning: float | None = 1e-2
     # keyframe edges (docs/benchmarks.md, "Keyframe edges"): a new keyframe's pose in the
     # previous one is registered again from starts shifted this far along +-x and +-y, and
     # a start whose result verifies with a CCS higher by more than keyframe_near_margin,

@@ -87,6 +87,7 @@ def tracker_counts(tracker) -> dict:
             "coarse_rescues": getattr(tracker, "coarse_rescues", 0),
             "registration_breaks": getattr(tracker, "registration_breaks", 0),
             "tilted_registrations": getattr(tracker, "tilted", 0),
+            "f2f_checks": getattr(tracker, "f2f_checks", 0),
             "f2f_refusals": getattr(tracker, "f2f_refusals", 0)}
 
 

@@ -163,7 +163,7 @@ class Tracker:
         if config.keyframe_edge not in EDGE_MODES:
             raise ValueError(f"tracking.keyframe_edge must be one of {EDGE_MODES}, got {config.keyframe_edge!r}")
         for name in ("max_deg_per_s", "max_mm_per_s", "keyframe_near_mm", "decoded_max_tilt_deg", "max_tilt_deg",
-                     "f2f_check_deg"):
+                     "f2f_check_deg", "f2f_below_conditioning"):
             v = getattr(config, name)
             if v is not None and not (math.isfinite(v) and v > 0):
                 raise ValueError(f"tracking.{name} must be a positive number or None, got {v!r}")
@@ -194,6 +194,7 @@ class Tracker:
         self.coarse_rescues = 0  # frames kept in their session by the coarse fallback
         self.registration_breaks = 0  # sessions started inside a contact: registration failed
         self.tilted = 0  # registrations refused for their tilt from the keyframe
+        self.f2f_checks = 0  # frames registered against the previous frame by the cross-check
         self.f2f_refusals = 0  # keyframe registrations refused by the frame-to-frame cross-check
 
     # ----------------------------------------------------------------- helpers
@@ -298,7 +299,7 @@ class Tracker:
             kf_T_frame = _kf_T_frame(res)
             if self.prev_is_keyframe or (self._continuous(frame, kf_T_frame)
                                          and self._within_tilt(frame, kf_T_frame)
-                                         and self._agrees_with_previous(frame, kf_T_frame)):
+                                         and self._agrees_with_previous(frame, kf_T_frame, res)):
                 return self._tracked(frame, res, kf_T_frame, [])
         if self.prev_is_keyframe:
             res = self._coarse(frame)
@@ -370,14 +371,16 @@ class Tracker:
         self.implausible += not ok
         return ok
 
-    def _agrees_with_previous(self, frame: Frame, kf_T_frame: torch.Tensor) -> bool:
-        """Whether ``kf_T_frame`` (against an older keyframe) lies within
+    def _agrees_with_previous(self, frame: Frame, kf_T_frame: torch.Tensor, res: RegistrationResult) -> bool:
+        """Whether ``kf_T_frame`` (``res``, against an older keyframe) lies within
         ``tracking.f2f_check_deg`` in rotation of the frame registered against the previous
-        frame and chained onto its pose; always, when the check is off or that registration
+        frame and chained onto its pose; always, when the check is off, when ``res`` is
+        well conditioned (``tracking.f2f_below_conditioning``) or when that registration
         fails. A refusal makes the previous frame the keyframe (the lazy rule)."""
-        limit = self.config.f2f_check_deg
-        if limit is None:
+        limit, below = self.config.f2f_check_deg, self.config.f2f_below_conditioning
+        if limit is None or (below is not None and float(res.conditioning[0]) >= below):
             return True
+        self.f2f_checks += 1
         start = torch.linalg.inv(torch.linalg.inv(self.kf_T_prev) @ kf_T_frame)  # prev_T_frame, inverted
         res = self.registrar.register(self.registrar.prepare(self.prev), frame, start[None])[0]
         if not bool(res.ok):

@@ -47,8 +47,9 @@ def frame(i: int, contact: bool | int = True, fps: float = 25.0) -> Frame:
 
 
 class ScriptedRegistrar:
-    def __init__(self, fails, slip=None, coarse_fails=None):
+    def __init__(self, fails, slip=None, coarse_fails=None, conditioning=0.1):
         self.fails = fails  # (ref_index, tar_index) -> bool
+        self.conditioning = conditioning  # of every answer
         self.slip = slip  # (ref_index, tar_index) -> (4, 4) error applied to the answer, or None
         # the coarse solve: (ref_index, tar_index) -> bool; by default it fails where the fine one does
         self.coarse_fails = coarse_fails or fails
@@ -78,11 +79,12 @@ class ScriptedRegistrar:
         full = lambda v, dt=torch.float64: torch.full((b,), v, dtype=dt)  # noqa: E731
         return RegistrationResult(t.expand(b, 4, 4).clone(), full(0.9 if ok else 0.1), full(0.9),
                                   full(100, torch.int64),
-                                  full(7, torch.int64), full(True, torch.bool), full(ok, torch.bool), full(0.1))
+                                  full(7, torch.int64), full(True, torch.bool), full(ok, torch.bool),
+                                  full(self.conditioning))
 
 
-def run(contacts, fails=lambda r, t: False, slip=None, fps=25.0, coarse_fails=None, **cfg):
-    reg = ScriptedRegistrar(fails, slip, coarse_fails)
+def run(contacts, fails=lambda r, t: False, slip=None, fps=25.0, coarse_fails=None, conditioning=0.1, **cfg):
+    reg = ScriptedRegistrar(fails, slip, coarse_fails, conditioning)
     tr = Tracker(TrackingConfig(**cfg), reg)
     steps = [tr.step(frame(i, c, fps)) for i, c in enumerate(contacts)]
     tail = tr.finish()
@@ -111,23 +113,34 @@ def check_poses(steps, kfs):
         torch.testing.assert_close(est, true)
 
 
-@pytest.mark.parametrize("check", [None, 1.0])
-def test_frame_to_frame_cross_check(check):
+@pytest.mark.parametrize("check, below, conditioning, fires", [
+    (None, None, 1e-3, False),  # off
+    (1.0, None, 0.1, True),  # every frame
+    (1.0, 1e-2, 1e-3, True),  # a weakly constrained keyframe registration is checked
+    (1.0, 1e-2, 0.1, False),  # a well constrained one is not
+    (1.0, 1e-2, math.nan, True),  # nor known to be: checked
+])
+def test_frame_to_frame_cross_check(check, below, conditioning, fires):
     """Registrations against keyframe 0 drift by 2 deg from frame 3 on, while every
     frame-to-frame registration is right (a keyframe held while the sensor rolls around
-    a cylinder). Off, the drifted poses are kept; with the 1 deg check, frame 3's keyframe
-    registration disagrees with frame 2 -> 3 chained onto frame 2's pose, so frame 2
-    becomes a keyframe and every pose is right."""
+    a cylinder). Unchecked, the drifted poses are kept; with the 1 deg check, frame 3's
+    keyframe registration disagrees with frame 2 -> 3 chained onto frame 2's pose, so
+    frame 2 becomes a keyframe and every pose is right."""
     c, s = math.cos(math.radians(2.0)), math.sin(math.radians(2.0))
     turn = torch.eye(4, dtype=torch.float64)
     turn[:2, :2] = torch.tensor([[c, -s], [s, c]], dtype=torch.float64)
-    steps, kfs, reg = run([True] * 6, slip=lambda r, t: turn if r == 0 and t >= 3 else None, f2f_check_deg=check)
-    if check is None:
+    steps, kfs, reg = run([True] * 6, slip=lambda r, t: turn if r == 0 and t >= 3 else None, f2f_check_deg=check,
+                          f2f_below_conditioning=below, conditioning=conditioning)
+    if not fires:
         assert [k.video_index for k in kfs] == [0, 5] and reg.tracker.f2f_refusals == 0
+        assert reg.tracker.f2f_checks == 0
         with pytest.raises(AssertionError):
             check_poses(steps, kfs)
     else:
         assert [k.video_index for k in kfs] == [0, 2, 5] and reg.tracker.f2f_refusals == 1
+        # frames 2 and 3 against keyframe 0 (frame 1 follows it; frame 3's retry against the
+        # new keyframe 2 does too), 4 and 5 against keyframe 2
+        assert reg.tracker.f2f_checks == 4
         check_poses(steps, kfs)
 
 
@@ -429,6 +442,8 @@ def test_bad_config_and_batch():
             Tracker(TrackingConfig(max_tilt_deg=bad), ScriptedRegistrar(lambda r, t: False))
         with pytest.raises(ValueError, match="f2f_check_deg"):
             Tracker(TrackingConfig(f2f_check_deg=bad), ScriptedRegistrar(lambda r, t: False))
+        with pytest.raises(ValueError, match="f2f_below_conditioning"):
+            Tracker(TrackingConfig(f2f_below_conditioning=bad), ScriptedRegistrar(lambda r, t: False))
     for bad in ((1,), (2.5,), (True,)):
         with pytest.raises(ValueError, match="fallback_factors"):
             Tracker(TrackingConfig(fallback_factors=bad), ScriptedRegistrar(lambda r, t: False))
