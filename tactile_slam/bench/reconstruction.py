@@ -196,7 +196,7 @@ def object_run(name: str, size_label: str, args, config: Config, work: Path) -> 
     for variant in args.variants:
         kfs, poses, object_T_start = variant_input(variant, keyframes, est, groups, episode.object_T_sensor, joinable)
         entry = {"object": name, "size": size_label, "size_mm": size, "frames": frames, "level": args.level,
-                 "background": (episode.meta.get("image") or {}).get("background"), "variant": variant,
+                 "background": episode.background, "variant": variant,
                  "keyframes": len(kfs), "simulation_s": t1 - t0, "system_s": t2 - t1, "system": system}
         try:
             res = reconstruct(kfs, poses, config)

@@ -159,7 +159,7 @@ def cached_episode(cache: Path, spec: EpisodeSpec, config: Config) -> Path:
     """The episode folder of ``spec`` under ``cache``, simulated when missing, made by an
     earlier motion revision or, at the image level, composed on another background than the
     one found now (the real one appeared or went away)."""
-    from tactile_slam.sim.episode import (EpisodeError, SimulationSettings, load_background_image, read_episode,
+    from tactile_slam.sim.episode import (EpisodeError, SimulationSettings, background_source, read_episode,
                                           simulate_episode)
     from tactile_slam.sim.motions import MOTION_REVISION
 
@@ -168,11 +168,9 @@ def cached_episode(cache: Path, spec: EpisodeSpec, config: Config) -> Path:
     if done.is_file():
         try:
             ep = read_episode(path)
-            background = (ep.meta.get("image") or {}).get("background")
             if len(ep) == spec.frames and ep.meta.get("level") == spec.level \
                     and ep.meta.get("motion_revision") == MOTION_REVISION \
-                    and (spec.level != "image"
-                         or background == load_background_image(None, config.sensor.shape)[1]):
+                    and (spec.level != "image" or ep.background == background_source()):
                 return path
         except EpisodeError:
             pass
@@ -481,9 +479,9 @@ def run(args) -> Path:
         for spec in specs:
             t0 = time.perf_counter()
             ep_dir = cached_episode(cache, spec, Config())
-            background = (read_episode(ep_dir).meta.get("image") or {}).get("background")
             entry = {"name": spec.name, "object": spec.object, "seed": spec.seed, "kind": spec.kind,
-                     "level": spec.level, "background": background, "frames": spec.frames, "table": spec.table,
+                     "level": spec.level, "background": read_episode(ep_dir).background, "frames": spec.frames,
+                     "table": spec.table,
                      "simulate_or_load_s": time.perf_counter() - t0, "methods": {}}
             for m in spec.methods:
                 res, err = run_method(ep_dir, m, work / spec.name / m, config)

@@ -74,19 +74,27 @@ def synthetic_background(shape: tuple[int, int]) -> np.ndarray:
     return np.clip(np.round(bgr), 0, 255).astype(np.uint8)
 
 
-def load_background_image(path: str | Path | None, shape: tuple[int, int]) -> tuple[np.ndarray, str]:
-    """``(background (H, W, 3) uint8, source)``: ``path``; else the real GelSight Mini
-    background (``calibration/background.png`` under
-    :func:`~tactile_slam.config.gelsight_mini_data`) when present; else
-    :func:`synthetic_background`, with a :class:`SyntheticBackgroundWarning`."""
+def background_source(path: str | Path | None = None) -> str:
+    """Which background :func:`load_background_image` composes on, without reading it:
+    ``path``; else the real GelSight Mini background (``calibration/background.png`` under
+    :func:`~tactile_slam.config.gelsight_mini_data`) when present; else ``"synthetic"``."""
+    if path is not None:
+        return str(path)
     real = gelsight_mini_data() / "calibration" / "background.png"
-    if path is None and real.is_file():
-        path = real
-    if path is None:
-        warnings.warn(f"no background at {real} (set ${GELSIGHT_MINI_ENV} to the GelSight Mini data folder): "
-                      "images are composed on a synthetic background that the shipped decoder was not "
-                      "calibrated on", SyntheticBackgroundWarning, stacklevel=2)
-        return synthetic_background(shape), "synthetic"
+    return str(real) if real.is_file() else "synthetic"
+
+
+def load_background_image(path: str | Path | None, shape: tuple[int, int]) -> tuple[np.ndarray, str]:
+    """``(background (H, W, 3) uint8, source)`` of :func:`background_source`; the synthetic
+    one (:func:`synthetic_background`) with a :class:`SyntheticBackgroundWarning`."""
+    source = background_source(path)
+    if source == "synthetic":
+        warnings.warn(f"no background at {gelsight_mini_data() / 'calibration' / 'background.png'} (set "
+                      f"${GELSIGHT_MINI_ENV} to the GelSight Mini data folder): images are composed on a synthetic "
+                      "background that the shipped decoder was not calibrated on", SyntheticBackgroundWarning,
+                      stacklevel=2)
+        return synthetic_background(shape), source
+    path = source
     img = cv2.imread(str(path), cv2.IMREAD_COLOR)
     if img is None:
         raise EpisodeError(f"cannot read background image {path}")
@@ -318,6 +326,12 @@ class Episode:
 
     def __len__(self) -> int:
         return len(self.object_T_sensor)
+
+    @property
+    def background(self) -> str | None:
+        """The background an image-level episode was composed on (``meta.yaml``: a path or
+        ``"synthetic"``); None at the gradient level."""
+        return (self.meta.get("image") or {}).get("background")
 
     @property
     def first_contact(self) -> int:

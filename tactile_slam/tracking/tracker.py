@@ -299,7 +299,7 @@ class Tracker:
             kf_T_frame = _kf_T_frame(res)
             if self.prev_is_keyframe or (self._continuous(frame, kf_T_frame)
                                          and self._within_tilt(frame, kf_T_frame)
-                                         and self._agrees_with_previous(frame, kf_T_frame, res)):
+                                         and self._agrees_with_previous(frame, res)):
                 return self._tracked(frame, res, kf_T_frame, [])
         if self.prev_is_keyframe:
             res = self._coarse(frame)
@@ -371,8 +371,8 @@ class Tracker:
         self.implausible += not ok
         return ok
 
-    def _agrees_with_previous(self, frame: Frame, kf_T_frame: torch.Tensor, res: RegistrationResult) -> bool:
-        """Whether ``kf_T_frame`` (``res``, against an older keyframe) lies within
+    def _agrees_with_previous(self, frame: Frame, res: RegistrationResult) -> bool:
+        """Whether the frame's registration ``res`` against an older keyframe lies within
         ``tracking.f2f_check_deg`` in rotation of the frame registered against the previous
         frame and chained onto its pose; always, when the check is off, when ``res`` is
         well conditioned (``tracking.f2f_below_conditioning``) or when that registration
@@ -381,11 +381,12 @@ class Tracker:
         if limit is None or (below is not None and float(res.conditioning[0]) >= below):
             return True
         self.f2f_checks += 1
+        kf_T_frame = _kf_T_frame(res)
         start = torch.linalg.inv(torch.linalg.inv(self.kf_T_prev) @ kf_T_frame)  # prev_T_frame, inverted
-        res = self.registrar.register(self.registrar.prepare(self.prev), frame, start[None])[0]
-        if not bool(res.ok):
+        f2f = self.registrar.register(self.registrar.prepare(self.prev), frame, start[None])[0]
+        if not bool(f2f.ok):
             return True
-        chained = self.kf_T_prev @ _kf_T_frame(res)
+        chained = self.kf_T_prev @ _kf_T_frame(f2f)
         ok = float(pose_error(chained[None], kf_T_frame[None])[0]) <= limit
         self.f2f_refusals += not ok
         return ok

@@ -8,8 +8,9 @@ from tactile_slam.calibration.colour_model import ColourModel
 from tactile_slam.cli.main import main
 from tactile_slam.io.video import VideoSource
 from tactile_slam.config import GELSIGHT_MINI_ENV, REPO_ROOT, gelsight_mini_data
-from tactile_slam.sim.episode import (EpisodeError, SimulationSettings, SyntheticBackgroundWarning, compose_images,
-                                      load_background_image, read_episode, simulate_episode, synthetic_background)
+from tactile_slam.sim.episode import (EpisodeError, SimulationSettings, SyntheticBackgroundWarning,
+                                      background_source, compose_images, load_background_image, read_episode,
+                                      simulate_episode, synthetic_background)
 from tactile_slam.sim.renderer import GelRenderer
 
 
@@ -32,6 +33,7 @@ def test_layout_and_contents(episode):
     assert np.array_equal(c.reshape(24, -1).sum(1) >= 500, ep.in_contact)
     meta = yaml.safe_load((episode / "meta.yaml").read_text())
     assert meta["kind"] == "tracking" and meta["seed"] == 3 and meta["level"] == "gradients"
+    assert ep.background is None  # composed on no background at the gradient level
     assert meta["sensor"]["mm_per_px"] == pytest.approx(0.0634)
     # ground truth matches a fresh render of the stored poses with the stored mesh
     maps = GelRenderer(ep.mesh()).render(ep.object_T_sensor[[12, 20]])
@@ -60,6 +62,7 @@ def test_image_level_video_is_exact(tmp_path):
     assert video.shape == (14, 240, 320, 3)
     assert np.array_equal(cv2.imread(str(out / "background.png")), bg)
     ep = read_episode(out)
+    assert ep.background == str(tmp_path / "bg.png")
     maps = GelRenderer(ep.mesh()).render(ep.object_T_sensor)
     expected = compose_images(maps.gradients, bg, ColourModel.load(model_path), 1.0, 1, 0)
     assert np.array_equal(video, expected)  # lossless and reproducible
@@ -76,6 +79,7 @@ def test_background_from_the_gelsight_mini_folder(tmp_path, monkeypatch):
     assert gelsight_mini_data() == tmp_path
     img, source = load_background_image(None, (240, 320))
     assert np.array_equal(img, bg) and source == str(tmp_path / "calibration" / "background.png")
+    assert background_source() == source and background_source("mine.png") == "mine.png"
     monkeypatch.delenv(GELSIGHT_MINI_ENV)
     assert gelsight_mini_data() == REPO_ROOT.parent / "shared" / "data" / "gelsight_mini"
 
@@ -87,6 +91,7 @@ def test_background_falls_back_to_synthetic_with_a_warning(tmp_path, monkeypatch
     with pytest.warns(SyntheticBackgroundWarning, match=GELSIGHT_MINI_ENV):
         img, source = load_background_image(None, (240, 320))
     assert source == "synthetic" and np.array_equal(img, synthetic_background((240, 320)))
+    assert background_source() == "synthetic"
 
 
 def test_compose_images_noise_independent_of_batching():
