@@ -154,3 +154,12 @@ def test_image_level_decodes_back_to_ground_truth(tmp_path, mini_data):
     err = torch.rad2deg(torch.acos(cos))[torch.from_numpy(c[10:])]
     assert err.median() < 8.0  # measured 4.4 deg with a colour model fitted on the example presses
     assert frame.in_contact.all()
+
+
+def test_background_unreadable_or_wrong_size_is_refused(tmp_path):
+    (tmp_path / "bad.png").write_bytes(b"not a png")
+    with pytest.raises(EpisodeError, match="cannot read background image"):
+        load_background_image(tmp_path / "bad.png", (240, 320))
+    cv2.imwrite(str(tmp_path / "small.png"), np.zeros((120, 160, 3), np.uint8))
+    with pytest.raises(EpisodeError, match="160x120, expected 320x240"):
+        load_background_image(tmp_path / "small.png", (240, 320))
