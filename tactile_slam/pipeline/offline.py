@@ -84,6 +84,7 @@ def tracker_counts(tracker) -> dict:
     frame-to-frame baselines)."""
     return {"implausible_motions": getattr(tracker, "implausible", 0),
             "moved_keyframe_edges": getattr(tracker, "moved_edges", 0),
+            "kept_keyframe_edges": getattr(tracker, "kept_edges", 0),
             "coarse_rescues": getattr(tracker, "coarse_rescues", 0),
             "registration_breaks": getattr(tracker, "registration_breaks", 0),
             "tilted_registrations": getattr(tracker, "tilted", 0),

@@ -22,6 +22,12 @@ registered again, in one batch, from starts shifted by ``tracking.keyframe_near_
 from there (``keyframe_near_rounds`` batches at most). On ribs about as far apart as a
 frame's step, tracking slips to the neighbouring rib (or the next) and verifies there,
 with a lower CCS than at the truth (docs/benchmarks.md, "Keyframe edges").
+Where the tracked edge is weakly constrained (the frame-to-frame cross-check's
+conditioning boundary below), a moved edge must also win from the frame before the new
+keyframe: that frame is registered against the new keyframe from the tracked and from the
+moved pose, and the move stands only where the moved start verifies with a CCS higher by
+the same margin. On a lattice (the knurl) a shift of one period can score higher against
+an older keyframe than the truth does, on a small contact ("Keyframe edges on a lattice").
 With ``tracking.keyframe_edge`` ``"reverse"`` or ``"midpoint"`` the edge is then measured
 the other way round too, the previous keyframe against the new one, and that result or
 the midpoint of the two directions replaces it ("Keyframe edge direction").
@@ -185,12 +191,14 @@ class Tracker:
         self.kf: Keyframe | None = None
         self.kf_prepared: Any = None
         self.prev: Frame | None = None
+        self.prevprev: Frame | None = None  # the frame before prev, at kf_T_prevprev (None with it)
         self.kf_T_prev = _eye()
         self.kf_T_prevprev: torch.Tensor | None = None
         self.prev_is_keyframe = False
         self.prev_in_contact = False
         self.implausible = 0  # registrations refused by the motion-continuity check
         self.moved_edges = 0  # keyframe edges replaced by a better-scoring nearby alignment
+        self.kept_edges = 0  # nearby alignments the frame before the new keyframe refused
         self.coarse_rescues = 0  # frames kept in their session by the coarse fallback
         self.registration_breaks = 0  # sessions started inside a contact: registration failed
         self.tilted = 0  # registrations refused for their tilt from the keyframe
@@ -237,16 +245,18 @@ class Tracker:
         more than ``keyframe_near_margin``. While that moves the pose, the search repeats
         from the new best (up to ``keyframe_near_rounds`` batches), each round's best having
         to beat the last by the margin, the limit still counted from the first start's
-        result: a slip of two ribs needs two steps. Returns ``prev_T_kf`` if nothing beat it."""
+        result: a slip of two ribs needs two steps. Where the first start's result is weakly
+        constrained (:meth:`_weak`), the frame before ``frame`` must prefer the move too
+        (:meth:`_previous_prefers_move`). Returns ``prev_T_kf`` if nothing beat it."""
         c = self.config
         moves = torch.cat([_eye()[None], se3.shifts_xy(c.keyframe_near_mm / 1000.0)])
         tracked = torch.linalg.inv(prev_T_kf)
-        start, first, best_ccs = tracked, None, None
+        start, first, first_cond, best_ccs = tracked, None, None, None
         for _ in range(c.keyframe_near_rounds):
             res = self.registrar.register(self.kf_prepared, Frame.cat([frame] * 5), moves @ start)
             T = res.tar_T_ref.to(torch.float64).cpu()
             if first is None:
-                first = T[:1]
+                first, first_cond = T[:1], res.conditioning[0]
             rot, trans = pose_error(T, first.expand(5, 4, 4))
             near = (rot <= c.keyframe_near_max_deg) & (trans <= c.keyframe_near_max_mm)
             score = torch.where(res.ok.cpu() & near, res.ccs.double().cpu().nan_to_num(-math.inf), -math.inf)
@@ -259,8 +269,35 @@ class Tracker:
             start, best_ccs = T[k], float(score[k])
         if start is tracked:
             return prev_T_kf
+        moved = torch.linalg.inv(start)
+        if self._weak(float(first_cond)) and not self._previous_prefers_move(frame, prev_T_kf, moved):
+            self.kept_edges += 1
+            return prev_T_kf
         self.moved_edges += 1
-        return torch.linalg.inv(start)
+        return moved
+
+    def _weak(self, conditioning: float) -> bool:
+        """Whether a registration of this ``conditioning`` gets the frame-to-frame
+        cross-check (``tracking.f2f_check_deg`` on, conditioning below
+        ``tracking.f2f_below_conditioning`` or NaN; ``None``: every one)."""
+        below = self.config.f2f_below_conditioning
+        return self.config.f2f_check_deg is not None and (below is None or not conditioning >= below)
+
+    def _previous_prefers_move(self, frame: Frame, tracked: torch.Tensor, moved: torch.Tensor) -> bool:
+        """Whether the frame before ``frame`` (the new keyframe) agrees with moving its edge
+        from ``tracked`` to ``moved`` (both ``(4, 4)`` poses of ``frame`` in the current
+        keyframe): registered against ``frame`` from both poses in one batch, the moved start
+        must verify with a CCS higher than the tracked start's by more than
+        ``tracking.keyframe_near_margin`` (a failed tracked start counts as lowest). True
+        when that frame is the keyframe itself or unknown: then the search's own comparison
+        was already the previous frame's."""
+        pp, kf_T_pp = self.prevprev, self.kf_T_prevprev
+        if pp is None or kf_T_pp is None or int(pp.index[0]) == self.kf.video_index:
+            return True
+        starts = torch.stack([torch.linalg.inv(edge) @ kf_T_pp for edge in (tracked, moved)])  # frame_T_pp
+        res = self.registrar.register(self.registrar.prepare(pp), Frame.cat([frame] * 2), starts)
+        ccs = torch.where(res.ok.cpu(), res.ccs.double().cpu().nan_to_num(-math.inf), -math.inf)
+        return bool(res.ok[1]) and float(ccs[1]) > float(ccs[0]) + self.config.keyframe_near_margin
 
     def _init_guess(self) -> torch.Tensor:
         """Initial tar_T_ref = inv(predicted kf_T_frame)."""
@@ -276,7 +313,7 @@ class Tracker:
         if not self.config.flush_session_tail or self.prev is None or self.prev_is_keyframe or not self.prev_in_contact:
             return []
         kf = self._make_keyframe(self.prev, False, self.kf_T_prev)
-        self.kf_T_prev, self.kf_T_prevprev, self.prev_is_keyframe = _eye(), None, True
+        self.kf_T_prev, self.kf_T_prevprev, self.prevprev, self.prev_is_keyframe = _eye(), None, None, True
         return [kf]
 
     # ----------------------------------------------------------------- API
@@ -333,14 +370,14 @@ class Tracker:
     def finish(self) -> list[Keyframe]:
         """End of stream: flush the last session's tail; returns the emitted keyframes."""
         emitted = self._flush_tail()
-        self.prev, self.prev_in_contact = None, False
+        self.prev, self.prevprev, self.prev_in_contact = None, None, False
         return emitted
 
     # ----------------------------------------------------------------- internals
     def _lost(self, index: int, emitted: list[Keyframe]) -> TrackStep:
         """Contact loss: the session ends; ``emitted``: its flushed tail, if any."""
         self.prev_in_contact = False
-        self.prev = None
+        self.prev, self.prevprev = None, None
         return TrackStep(index=index, in_contact=False, keyframes=emitted)
 
     def _coarse(self, frame: Frame) -> RegistrationResult | None:
@@ -377,8 +414,7 @@ class Tracker:
         frame and chained onto its pose; always, when the check is off, when ``res`` is
         well conditioned (``tracking.f2f_below_conditioning``) or when that registration
         fails. A refusal makes the previous frame the keyframe (the lazy rule)."""
-        limit, below = self.config.f2f_check_deg, self.config.f2f_below_conditioning
-        if limit is None or (below is not None and float(res.conditioning[0]) >= below):
+        if not self._weak(float(res.conditioning[0])):
             return True
         self.f2f_checks += 1
         kf_T_frame = _kf_T_frame(res)
@@ -387,7 +423,7 @@ class Tracker:
         if not bool(f2f.ok):
             return True
         chained = self.kf_T_prev @ _kf_T_frame(f2f)
-        ok = float(pose_error(chained[None], kf_T_frame[None])[0]) <= limit
+        ok = float(pose_error(chained[None], kf_T_frame[None])[0]) <= self.config.f2f_check_deg
         self.f2f_refusals += not ok
         return ok
 
@@ -409,7 +445,7 @@ class Tracker:
 
     def _tracked(self, frame: Frame, res: RegistrationResult, kf_T_frame: torch.Tensor,
                  emitted: list[Keyframe]) -> TrackStep:
-        self.kf_T_prevprev = self.kf_T_prev
+        self.kf_T_prevprev, self.prevprev = self.kf_T_prev, self.prev
         self.kf_T_prev = kf_T_frame
         self.prev_is_keyframe = False
         self.prev, self.prev_in_contact = frame, True
@@ -420,7 +456,7 @@ class Tracker:
 
     def _done(self, frame: Frame, step: TrackStep) -> TrackStep:
         """Bookkeeping after the frame itself became a (session-head) keyframe."""
-        self.kf_T_prev, self.kf_T_prevprev = _eye(), None
+        self.kf_T_prev, self.kf_T_prevprev, self.prevprev = _eye(), None, None
         self.prev_is_keyframe = True
         self.prev, self.prev_in_contact = frame, True
         return step
