@@ -22,7 +22,8 @@ from tactile_slam.sim.episode import SimulationSettings, read_episode, simulate_
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
 
 STATS_KEYS = {"frames", "contact_frames", "keyframes", "sessions", "fps", "timing_ms", "frames_with_pose",
-              "implausible_motions", "moved_keyframe_edges", "coarse_rescues", "registration_breaks"}
+              "implausible_motions", "moved_keyframe_edges", "kept_keyframe_edges", "coarse_rescues",
+              "registration_breaks"}
 
 
 @pytest.fixture(scope="module")

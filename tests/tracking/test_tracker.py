@@ -512,6 +512,57 @@ def test_keyframe_edge_check_off_and_bad_settings():
             Tracker(TrackingConfig(**bad), reg)
 
 
+class PreviousFrameRegistrar(RibRegistrar):
+    """:class:`RibRegistrar` (the edge search finds the truth) with every registration's
+    conditioning ``conditioning``; the previous-frame batch (``B = 2``: the tracked, then
+    the moved start) converges to its starts with CCS ``prev_ccs``. Counts those batches."""
+
+    def __init__(self, conditioning: float, prev_ccs: tuple[float, float], fails):
+        super().__init__(_rib(), right=3, right_ccs=0.95)
+        self.fails, self.conditioning, self.prev_ccs, self.pairs = fails, conditioning, prev_ccs, 0
+
+    def register(self, ref_index, tar: Frame, init):
+        res = super().register(ref_index, tar, init)
+        if len(tar) == 2:
+            self.pairs += 1
+            res.tar_T_ref[:] = init.to(res.tar_T_ref.dtype)
+            res.ccs[:] = torch.tensor(self.prev_ccs, dtype=res.ccs.dtype)
+        return res
+
+
+@pytest.mark.parametrize("conditioning, prev_ccs, fails_at, moved, asked", [
+    (1e-3, (0.9, 0.95), 3, True, True),  # weak: the frame before the new keyframe prefers the move
+    (1e-3, (0.95, 0.9), 3, False, True),  # weak: it prefers the tracked edge, which stays
+    (1e-3, (0.9, 0.905), 3, False, True),  # weak: the move wins by less than the margin
+    (0.1, (0.95, 0.9), 3, True, False),  # well constrained: the search alone decides
+    (1e-3, (0.95, 0.9), 2, True, False),  # the frame before the new keyframe is the keyframe
+])
+def test_weak_keyframe_edge_moves_only_where_the_previous_frame_agrees(conditioning, prev_ccs, fails_at, moved,
+                                                                        asked):
+    """On a lattice a shift of one period can score higher against an older keyframe than
+    the truth (the unseen knurl s2). Where the tracked edge is weakly constrained (below
+    ``f2f_below_conditioning``), the frame before the new keyframe is registered against it
+    from both poses, and the move stands only if that scores it higher by the margin."""
+    reg = PreviousFrameRegistrar(conditioning, prev_ccs, lambda r, t: (r, t) == (0, fails_at))
+    tr = Tracker(TrackingConfig(), reg)
+    kfs = [k for i in range(5) for k in tr.step(frame(i)).keyframes]
+    b = fails_at - 1  # the new keyframe
+    truth = torch.linalg.inv(pose(0)) @ pose(b)
+    slipped = torch.linalg.inv(_rib() @ torch.linalg.inv(pose(b)) @ pose(0))
+    torch.testing.assert_close(kfs[1].prev_T_kf, truth if moved else slipped)
+    assert (tr.moved_edges, tr.kept_edges) == (int(moved), int(asked and not moved))
+    assert reg.pairs == int(asked)
+
+
+def test_weak_keyframe_edge_check_follows_the_cross_check_switch():
+    """With the frame-to-frame cross-check off, no edge is weak: the search alone decides."""
+    reg = PreviousFrameRegistrar(1e-3, (0.95, 0.9), lambda r, t: (r, t) == (0, 3))
+    tr = Tracker(TrackingConfig(f2f_check_deg=None), reg)
+    kfs = [k for i in range(5) for k in tr.step(frame(i)).keyframes]
+    torch.testing.assert_close(kfs[1].prev_T_kf, torch.linalg.inv(pose(0)) @ pose(2))
+    assert (tr.moved_edges, tr.kept_edges, reg.pairs) == (1, 0, 0)
+
+
 class LatticeRegistrar(ScriptedRegistrar):
     """Ribs 0.45 mm apart along x: tracking (``B = 1``) slips ``ribs`` ribs; a start of the
     keyframe-edge batch converges to the rib nearest to it, with CCS 0.99 at the truth and
