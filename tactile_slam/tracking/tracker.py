@@ -192,6 +192,7 @@ class Tracker:
         self.kf_prepared: Any = None
         self.prev: Frame | None = None
         self.prevprev: Frame | None = None  # the frame before prev, at kf_T_prevprev (None with it)
+        self._recent: list[tuple[Frame, Any]] = []  # (frame, prepared) of prev / prevprev, at most 2
         self.kf_T_prev = _eye()
         self.kf_T_prevprev: torch.Tensor | None = None
         self.prev_is_keyframe = False
@@ -209,7 +210,7 @@ class Tracker:
     def _make_keyframe(self, frame: Frame, new_session: bool, prev_T_kf: torch.Tensor) -> Keyframe:
         if not new_session and self.config.keyframe_near_mm is not None:
             prev_T_kf = self._best_nearby(frame, prev_T_kf)
-        prepared = self.registrar.prepare(frame)
+        prepared = self._prepare(frame)
         if not new_session and self.config.keyframe_edge != "forward":
             prev_T_kf = self._reverse_edge(prepared, prev_T_kf)
         if new_session:
@@ -223,6 +224,19 @@ class Tracker:
         self.kf = kf
         self.kf_prepared = prepared  # kept here too: the pipeline's Keyframe.compact() drops kf.prepared
         return kf
+
+    def _prepare(self, frame: Frame) -> Any:
+        """``registrar.prepare(frame)``, reused while ``frame`` (the same object) is the
+        previous frame or the one before it: the cross-check prepares the previous frame,
+        which the lazy rule may make the keyframe next, and the keyframe-edge check reads
+        the frame before that."""
+        for f, prepared in self._recent:
+            if f is frame:
+                return prepared
+        prepared = self.registrar.prepare(frame)
+        self._recent = [(f, p) for f, p in self._recent if f is self.prev or f is self.prevprev][-1:]
+        self._recent.append((frame, prepared))
+        return prepared
 
     def _reverse_edge(self, prepared: Any, prev_T_kf: torch.Tensor) -> torch.Tensor:
         """The edge ``prev_T_kf`` (new keyframe in the current one) measured the other way
@@ -295,7 +309,7 @@ class Tracker:
         if pp is None or kf_T_pp is None or int(pp.index[0]) == self.kf.video_index:
             return True
         starts = torch.stack([torch.linalg.inv(edge) @ kf_T_pp for edge in (tracked, moved)])  # frame_T_pp
-        res = self.registrar.register(self.registrar.prepare(pp), Frame.cat([frame] * 2), starts)
+        res = self.registrar.register(self._prepare(pp), Frame.cat([frame] * 2), starts)
         ccs = torch.where(res.ok.cpu(), res.ccs.double().cpu().nan_to_num(-math.inf), -math.inf)
         return bool(res.ok[1]) and float(ccs[1]) > float(ccs[0]) + self.config.keyframe_near_margin
 
@@ -419,7 +433,7 @@ class Tracker:
         self.f2f_checks += 1
         kf_T_frame = _kf_T_frame(res)
         start = torch.linalg.inv(torch.linalg.inv(self.kf_T_prev) @ kf_T_frame)  # prev_T_frame, inverted
-        f2f = self.registrar.register(self.registrar.prepare(self.prev), frame, start[None])[0]
+        f2f = self.registrar.register(self._prepare(self.prev), frame, start[None])[0]
         if not bool(f2f.ok):
             return True
         chained = self.kf_T_prev @ _kf_T_frame(f2f)

@@ -639,3 +639,28 @@ def test_frames_keep_their_keyframe_within_the_tilt_limits(decoded, limit, all_l
     for s in steps:
         torch.testing.assert_close(kf_pose[s.keyframe_id] @ s.kf_T_frame, _tilt_pose(s.index))
         assert decoded is False or limit is None or float(se3.tilt_deg(s.kf_T_frame)) <= limit + 1e-9
+
+
+class CountingRegistrar(ScriptedRegistrar):
+    def __init__(self, *args, **kwargs):
+        super().__init__(*args, **kwargs)
+        self.prepared: list[int] = []
+
+    def prepare(self, ref: Frame):
+        self.prepared.append(int(ref.index[0]))
+        return super().prepare(ref)
+
+
+def test_a_frame_the_cross_check_prepared_is_not_prepared_again_as_keyframe():
+    """Frame 3's registration against keyframe 0 is 2 deg off; the cross-check prepares
+    frame 2 to register frame 3 against it, refuses, and the lazy rule makes frame 2 the
+    keyframe from that same preparation. Poses stay exact."""
+    turn = torch.eye(4, dtype=torch.float64)
+    turn[:2, :2] = torch.tensor([[math.cos(0.035), -math.sin(0.035)], [math.sin(0.035), math.cos(0.035)]])
+    reg = CountingRegistrar(lambda r, t: False, lambda r, t: turn if (r, t) == (0, 3) else None, conditioning=1e-3)
+    tr = Tracker(TrackingConfig(keyframe_near_mm=None), reg)
+    steps = [tr.step(frame(i)) for i in range(5)]
+    kfs = [k for s in steps for k in s.keyframes] + tr.finish()
+    assert tr.f2f_refusals == 1 and [k.video_index for k in kfs] == [0, 2, 4]
+    assert sorted(reg.prepared) == [0, 1, 2, 3, 4]  # each frame once: checks 1-3, keyframes 0, 2 and the tail 4
+    check_poses(steps, kfs)
