@@ -313,7 +313,10 @@ class TrackingConfig:
     # a start whose result verifies with a CCS higher by more than keyframe_near_margin,
     # within keyframe_near_max_deg / _mm of the tracked pose (one frame's motion limit at
     # 25 fps), replaces it (on ribs a step of about a period slips to the neighbouring
-    # rib); None disables
+    # rib); where the tracked edge is weakly constrained (below f2f_below_conditioning, with
+    # the cross-check on) the frame before the new keyframe must prefer the move by the same
+    # margin (on a lattice a period's shift can outscore the truth: "Keyframe edges on a
+    # lattice"); None disables
     keyframe_near_mm: float | None = 0.5
     keyframe_near_margin: float = 0.01
     keyframe_near_max_deg: float = 5.0
