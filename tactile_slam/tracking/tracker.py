@@ -191,7 +191,7 @@ class Tracker:
         self.kf: Keyframe | None = None
         self.kf_prepared: Any = None
         self.prev: Frame | None = None
-        self.prevprev: Frame | None = None  # the frame before prev, at kf_T_prevprev (None with it)
+        self.prevprev: Frame | None = None  # the frame before prev, at kf_T_prevprev; None if it is the keyframe
         self._recent: list[tuple[Frame, Any]] = []  # (frame, prepared) of prev / prevprev, at most 2
         self.kf_T_prev = _eye()
         self.kf_T_prevprev: torch.Tensor | None = None
@@ -303,13 +303,12 @@ class Tracker:
         keyframe): registered against ``frame`` from both poses in one batch, the moved start
         must verify with a CCS higher than the tracked start's by more than
         ``tracking.keyframe_near_margin`` (a failed tracked start counts as lowest). True
-        when that frame is the keyframe itself or unknown: then the search's own comparison
-        was already the previous frame's."""
-        pp, kf_T_pp = self.prevprev, self.kf_T_prevprev
-        if pp is None or kf_T_pp is None or int(pp.index[0]) == self.kf.video_index:
+        when that frame is the keyframe itself (:attr:`prevprev` ``None``): then the search's
+        own comparison was already the previous frame's."""
+        if self.prevprev is None:
             return True
-        starts = torch.stack([torch.linalg.inv(edge) @ kf_T_pp for edge in (tracked, moved)])  # frame_T_pp
-        res = self.registrar.register(self._prepare(pp), Frame.cat([frame] * 2), starts)
+        starts = torch.stack([torch.linalg.inv(edge) @ self.kf_T_prevprev for edge in (tracked, moved)])  # frame_T_pp
+        res = self.registrar.register(self._prepare(self.prevprev), Frame.cat([frame] * 2), starts)
         ccs = torch.where(res.ok.cpu(), res.ccs.double().cpu().nan_to_num(-math.inf), -math.inf)
         return bool(res.ok[1]) and float(ccs[1]) > float(ccs[0]) + self.config.keyframe_near_margin
 
@@ -367,7 +366,7 @@ class Tracker:
         self.kf_T_prevprev = (
             torch.linalg.inv(old_kf_T_prev) @ self.kf_T_prevprev if self.kf_T_prevprev is not None else None
         )
-        self.kf_T_prev = _eye()
+        self.kf_T_prev, self.prev_is_keyframe = _eye(), True
         res = self._register(frame, self._init_guess())
         if bool(res.ok):
             return self._tracked(frame, res, _kf_T_frame(res), [prev_kf])
@@ -459,7 +458,7 @@ class Tracker:
 
     def _tracked(self, frame: Frame, res: RegistrationResult, kf_T_frame: torch.Tensor,
                  emitted: list[Keyframe]) -> TrackStep:
-        self.kf_T_prevprev, self.prevprev = self.kf_T_prev, self.prev
+        self.kf_T_prevprev, self.prevprev = self.kf_T_prev, None if self.prev_is_keyframe else self.prev
         self.kf_T_prev = kf_T_frame
         self.prev_is_keyframe = False
         self.prev, self.prev_in_contact = frame, True
