@@ -25,7 +25,8 @@ from tactile_slam.io.dataset import FrameBatch, iter_batches
 from tactile_slam.io.frames import FrameSource
 from tactile_slam.io.scan import check_background, mean_background
 from tactile_slam.pipeline.odometry import OdometryMap
-from tactile_slam.pipeline.outputs import check_output_folder, frame_poses, main_group, main_group_poses, write_json
+from tactile_slam.pipeline.outputs import (check_output_folder, frame_poses, main_group, main_group_poses,
+                                          write_frames_csv, write_json)
 from tactile_slam.pipeline.visualizer import NullVisualizer
 from tactile_slam.recon import ReconError, TriMesh, reconstruct
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
@@ -167,7 +168,7 @@ class OfflinePipeline:
         mode = LOOP_MODES[opts.method]
         backend = BackEnd(self.config, mode) if mode is not None else OdometryMap()
         images: dict[int, torch.Tensor] = {}  # recent raw images, for image-SIFT keyframes
-        indices, kf_of, kf_T = [], [], []
+        indices, kf_of, kf_T, quality = [], [], [], []
         keyframes: list[Keyframe] = []
         t_geom, t_track, t_back = [], [], []
         n_total = len(self.source) if hasattr(self.source, "__len__") else None
@@ -205,6 +206,7 @@ class OfflinePipeline:
                     indices.append(step.index)
                     kf_of.append(step.keyframe_id if step.in_contact else -1)
                     kf_T.append(step.kf_T_frame.numpy() if step.kf_T_frame is not None else np.full((4, 4), np.nan))
+                    quality.append((step.ccs, step.scr, step.conditioning))
                     self.visualizer.on_frame(one, step)
                 bar.update(len(batch))
             emit(tracker.finish())
@@ -216,8 +218,8 @@ class OfflinePipeline:
             bar.close()
         wall = time.perf_counter() - t_start
         backend.finish()
-        result = self._write(indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, t_back, wall, error,
-                             tracker_counts(tracker))
+        result = self._write(indices, kf_of, kf_T, quality, keyframes, backend, t_geom, t_track, t_back, wall,
+                             error, tracker_counts(tracker))
         self.visualizer.close()
         if error is not None and not isinstance(error, KeyboardInterrupt):
             raise error
@@ -230,7 +232,7 @@ class OfflinePipeline:
         return builder.from_gradients(batch.gradients, batch.contact, batch.index, batch.timestamp)
 
     # ------------------------------------------------------------------ outputs
-    def _write(self, indices, kf_of, kf_T, keyframes, backend, t_geom, t_track, t_back, wall, error,
+    def _write(self, indices, kf_of, kf_T, quality, keyframes, backend, t_geom, t_track, t_back, wall, error,
                counts: dict) -> RunResult:
         out = self.out_dir
         n = len(indices)
@@ -242,10 +244,12 @@ class OfflinePipeline:
         t = (max(indices) + 1) if indices else 0
         kf_of_full = np.full(t, -1, dtype=np.int64)
         kf_T_full = np.full((t, 4, 4), np.nan)
+        quality_full = np.full((t, 3), np.nan)
         if n:
             idx = np.asarray(indices)
             kf_of_full[idx] = kf_of
             kf_T_full[idx] = np.stack(kf_T)
+            quality_full[idx] = np.asarray(quality, dtype=np.float64)
         start_T_kf, group_of_kf = dict(backend.start_T_kf), dict(backend.group)  # snapshots of live views
         by_group, groups = frame_poses(kf_of_full, kf_T_full, start_T_kf, group_of_kf)
         poses = main_group_poses(by_group, groups)
@@ -254,6 +258,8 @@ class OfflinePipeline:
         np.save(out / "poses_by_group.npy", by_group)
         np.save(out / "frame_group.npy", groups)
         write_tum(out / "trajectory_tum.txt", np.arange(t) / fps, poses)
+        write_frames_csv(out / "frames.csv", fps, groups, kf_of_full, {k.id: k.session for k in keyframes},
+                         {k.video_index for k in keyframes}, quality_full)
         write_json(out / "keyframes.json", [
             {"id": k.id, "video_index": k.video_index, "session": k.session, "group": group_of_kf[k.id],
              "new_session": k.new_session, "depth_known": k.depth_known, "pose": start_T_kf[k.id].tolist()}

@@ -22,7 +22,7 @@ chaining keyframes the worker has not answered for yet by odometry
 End of stream, :meth:`OnlinePipeline.stop`, Ctrl+C (``KeyboardInterrupt``) or a dead
 worker never lose work: the tracker flushes its session tail, the worker (if alive)
 finishes its final solve, and every output of the offline pipeline is written for the
-frames seen so far (``poses.npy``, ``trajectory_tum.txt``, ``keyframes.json``,
+frames seen so far (``poses.npy``, ``trajectory_tum.txt``, ``frames.csv``, ``keyframes.json``,
 ``loops.json``, ``pose_graph.g2o``, the mesh), plus the online statistics in
 ``stats.json`` (``frames_dropped``, ``latency_ms``, ``keyframes_skipped_for_loops``,
 ``backend_error``, ``stopped_by``). See ``docs/online.md``.
@@ -512,7 +512,7 @@ class OnlinePipeline(OfflinePipeline):
         kmap = KeyframeMap()
         feed = RealtimeFeed(self.source, opts.rate, opts.buffer_frames)
         arrival_of: dict[int, float] = {}
-        indices, kf_of, kf_T, keyframes = [], [], [], []
+        indices, kf_of, kf_T, quality, keyframes = [], [], [], [], []
         t_geom, t_track, latency = [], [], []
         state = {"loops": 0, "corrected": False, "corrections": 0, "skipped": 0, "step_s": []}
         bar = tqdm(total=len(self.source) if hasattr(self.source, "__len__") else None,
@@ -570,6 +570,7 @@ class OnlinePipeline(OfflinePipeline):
                     indices.append(step.index)
                     kf_of.append(step.keyframe_id if step.in_contact else -1)
                     kf_T.append(step.kf_T_frame.numpy() if step.kf_T_frame is not None else np.full((4, 4), np.nan))
+                    quality.append((step.ccs, step.scr, step.conditioning))
                     self.visualizer.on_frame(frame, step)
                     bar.update(1)
             finally:
@@ -591,8 +592,8 @@ class OnlinePipeline(OfflinePipeline):
         wall = time.perf_counter() - t_start
         if error is not None and not indices:
             raise error
-        result = self._write(indices, kf_of, kf_T, keyframes, kmap, t_geom, t_track, state["step_s"], wall, error,
-                             tracker_counts(tracker))
+        result = self._write(indices, kf_of, kf_T, quality, keyframes, kmap, t_geom, t_track, state["step_s"], wall,
+                             error, tracker_counts(tracker))
         result.stats.update(final_stats)
         result.stats.update(self._online_stats(feed, latency, keyframes, state, stopped_by))
         result.stats["completed"] = stopped_by == "end_of_stream"
@@ -611,6 +612,7 @@ class OnlinePipeline(OfflinePipeline):
             event.map_T_sensor, event.sensor_T_object = map_T, torch.linalg.inv(map_T)
             event.keyframe_id, event.session, event.group = step.keyframe_id, step.session, kmap.group[step.keyframe_id]
             event.is_keyframe, event.ccs, event.scr = step.is_keyframe, step.ccs, step.scr
+            event.conditioning = step.conditioning
             event.loop_corrected, state["corrected"] = state["corrected"], False
         arrived = arrival_of.pop(step.index, None)
         if arrived is not None:

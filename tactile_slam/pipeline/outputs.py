@@ -10,6 +10,8 @@ Output folder (stable names; see ``docs/outputs.md``):
   in the frame of its own group's first contact frame, and that group id (-1: none).
 * ``trajectory_tum.txt``: the rows of ``poses.npy`` with a pose, TUM format
   (timestamp from the frame rate, translation in metres, quaternion x y z w).
+* ``frames.csv``: one row per video frame: its group, session and keyframe, whether it
+  became a keyframe, and the quality of its registration (CCS, SCR, conditioning).
 * ``keyframes.json``, ``stats.json``, ``config.yaml``.
 
 Output locations are checked before any work (:func:`check_output_folder`,
@@ -89,6 +91,36 @@ def main_group_poses(poses_by_group: np.ndarray, frame_group: np.ndarray) -> np.
 
 def write_json(path: Path, data: Any) -> None:
     path.write_text(json.dumps(data, indent=2))
+
+
+FRAME_COLUMNS = ("index", "time_s", "group", "session", "keyframe_id", "is_keyframe", "ccs", "scr", "conditioning")
+
+
+def write_frames_csv(path: Path, fps: float, frame_group: np.ndarray, keyframe_of: np.ndarray,
+                     session_of_kf: dict[int, int], keyframe_indices: set[int], quality: np.ndarray) -> None:
+    """``frames.csv``: one row per video index (columns :data:`FRAME_COLUMNS`).
+
+    Args:
+        fps: frame rate (``time_s = index / fps``, as ``trajectory_tum.txt``).
+        frame_group: ``(T,)`` group of each frame (-1: no pose).
+        keyframe_of: ``(T,)`` keyframe each frame's pose is measured from (-1: none).
+        session_of_kf: keyframe id -> session id.
+        keyframe_indices: video indices of the keyframes.
+        quality: ``(T, 3)`` CCS, SCR and conditioning of each frame's accepted
+            registration (NaN: a session head, or no contact), written empty when NaN.
+    """
+    t = len(frame_group)
+    session = np.array([session_of_kf.get(int(k), -1) for k in keyframe_of], dtype=np.int64).reshape(t)
+    is_kf = np.isin(np.arange(t), np.fromiter(keyframe_indices, dtype=np.int64, count=len(keyframe_indices)))
+
+    def num(x: float) -> str:
+        return "" if x != x else f"{x:.6g}"
+
+    lines = [",".join(FRAME_COLUMNS)]
+    for i in range(t):
+        lines.append(f"{i},{i / fps:.6f},{int(frame_group[i])},{int(session[i])},{int(keyframe_of[i])},"
+                     f"{int(is_kf[i])}," + ",".join(num(float(v)) for v in quality[i]))
+    path.write_text("\n".join(lines) + "\n")
 
 
 class OutputPathError(ValueError):

@@ -47,6 +47,8 @@ class PoseEvent:
             group (``-1`` without contact).
         is_keyframe: the frame itself became a keyframe.
         ccs / scr: registration quality (NaN for a session head or without contact).
+        conditioning: the registration's conditioning (``TrackStep.conditioning``): small
+            where the contact leaves a motion weakly constrained; NaN where ``ccs`` is.
         loop_corrected: the back end moved this group's poses since the previous event.
         latency_ms: arrival of the frame to publication of its pose.
         frames_dropped: frames dropped by the feed so far.
@@ -63,6 +65,7 @@ class PoseEvent:
     is_keyframe: bool = False
     ccs: float = float("nan")
     scr: float = float("nan")
+    conditioning: float = float("nan")
     loop_corrected: bool = False
     latency_ms: float = float("nan")
     frames_dropped: int = 0

@@ -43,7 +43,7 @@ class FrameToFrameTracker:
         self.head_T_prev = self.head_T_prev @ prev_T_frame
         self.prev_prepared = self.registrar.prepare(frame)
         return TrackStep(index, True, self.head_T_prev.clone(), self.head.id, self.head.session,
-                         float(res.ccs[0]), float(res.scr[0]))
+                         float(res.ccs[0]), float(res.scr[0]), conditioning=float(res.conditioning[0]))
 
     def finish(self) -> list[Keyframe]:
         self.prev_prepared = None

@@ -115,6 +115,10 @@ class TrackStep:
         keyframes: keyframes emitted by this step, in id order (0, 1 or 2; a flushed
             session tail is emitted by the first non-contact step).
         is_keyframe: this frame itself became a keyframe.
+        conditioning: the accepted registration's conditioning (smallest over largest
+            eigenvalue of its normal equations, :class:`RegistrationResult`): small where
+            the contact leaves a motion weakly constrained (an edge, a groove, a lattice);
+            NaN where ``ccs`` is.
     """
 
     index: int
@@ -126,6 +130,7 @@ class TrackStep:
     scr: float = float("nan")
     keyframes: list[Keyframe] = field(default_factory=list)
     is_keyframe: bool = False
+    conditioning: float = float("nan")
 
 
 def _eye() -> torch.Tensor:
@@ -464,7 +469,7 @@ class Tracker:
         self.prev, self.prev_in_contact = frame, True
         return TrackStep(
             int(frame.index[0]), True, kf_T_frame, self.kf.id, self.kf.session,
-            float(res.ccs[0]), float(res.scr[0]), emitted, False,
+            float(res.ccs[0]), float(res.scr[0]), emitted, False, float(res.conditioning[0]),
         )
 
     def _done(self, frame: Frame, step: TrackStep) -> TrackStep:

@@ -52,6 +52,35 @@ def run(episode_dir, out, method, mesh=False):
     return OfflinePipeline(src, Config(), out, RunOptions(method=method, progress=False, mesh=mesh)).run()
 
 
+def check_frames_csv(out, res, config=Config(), fps=25.0):
+    """``frames.csv`` against the run's other outputs: one row per video frame; the group of
+    ``frame_group.npy``; the keyframes and sessions of ``keyframes.json``; scores exactly
+    where a frame was registered (not a session head, in contact), and those passing the
+    tracking thresholds, since they are the accepted registrations'."""
+    table = np.genfromtxt(out / "frames.csv", delimiter=",", names=True)
+    t = len(res.poses)
+    assert table.dtype.names == ("index", "time_s", "group", "session", "keyframe_id", "is_keyframe",
+                                 "ccs", "scr", "conditioning")
+    assert len(table) == t
+    np.testing.assert_array_equal(table["index"], np.arange(t))
+    np.testing.assert_allclose(table["time_s"], np.arange(t) / fps, atol=1e-6)
+    np.testing.assert_array_equal(table["group"], res.frame_group)
+    kfs = json.loads((out / "keyframes.json").read_text())
+    np.testing.assert_array_equal(np.flatnonzero(table["is_keyframe"]), sorted(k["video_index"] for k in kfs))
+    session = {k["id"]: k["session"] for k in kfs}
+    tracked = res.frame_group >= 0
+    np.testing.assert_array_equal(table["keyframe_id"] >= 0, tracked)
+    assert all(table["session"][i] == session[int(table["keyframe_id"][i])] for i in np.flatnonzero(tracked))
+    assert (table["session"][~tracked] == -1).all()
+    heads = {k["video_index"] for k in kfs if k["new_session"]}
+    scored = tracked & ~np.isin(np.arange(t), list(heads))
+    for name in ("ccs", "scr", "conditioning"):
+        np.testing.assert_array_equal(np.isfinite(table[name]), scored)
+    tc = config.tracking
+    assert (table["ccs"][scored] >= tc.ccs_threshold).all() and (table["scr"][scored] >= tc.scr_threshold).all()
+    assert ((table["conditioning"][scored] > 0) & (table["conditioning"][scored] <= 1)).all()
+
+
 @pytest.mark.parametrize("method", ["nf-kf", "gelslam"])
 def test_tracking_episode_accuracy(tracking_episode, tmp_path, method):
     res = run(tracking_episode, tmp_path, method, mesh=method == "gelslam")
@@ -73,6 +102,7 @@ def test_tracking_episode_accuracy(tracking_episode, tmp_path, method):
     assert STATS_KEYS <= set(stats) and stats["completed"]
     for name in ("poses.npy", "trajectory_tum.txt", "keyframes.json", "config.yaml"):
         assert (tmp_path / name).is_file()
+    check_frames_csv(tmp_path, res)
     tum = np.loadtxt(tmp_path / "trajectory_tum.txt")
     assert len(tum) == has.sum()
     np.testing.assert_allclose(tum[:, 1:4], res.poses[has, :3, 3], atol=1e-9)
@@ -96,6 +126,8 @@ def test_contact_loss_sessions_merge_with_loops(contact_loss_episode, tmp_path):
     full = run(contact_loss_episode, tmp_path / "full", "gelslam")
     odo = run(contact_loss_episode, tmp_path / "odo", "nf-kf")
     assert full.stats["sessions"] >= 2 and odo.stats["groups"] == odo.stats["sessions"]
+    for out, res in ((tmp_path / "odo", odo), (tmp_path / "full", full)):  # sessions, gaps, merged groups
+        check_frames_csv(out, res)
     assert full.stats["loops"] >= 1 and full.stats["groups"] < full.stats["sessions"]
     # the largest merged group: its frames are posed in the frame of its first frame
     groups, counts = np.unique(full.frame_group[full.frame_group >= 0], return_counts=True)

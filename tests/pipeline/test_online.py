@@ -132,6 +132,15 @@ def test_cli_online_with_skipping_close_to_offline(episode, offline, tmp_path, c
         assert on[k] <= off[k] + 0.5, (on, off)
     lines = (tmp_path / "poses.jsonl").read_text().splitlines()
     assert len(lines) == s["frames"] and {"map_T_sensor", "latency_ms", "loop_corrected"} <= set(json.loads(lines[0]))
+    # each published score is the one frames.csv holds for that frame
+    table = np.genfromtxt(out / "frames.csv", delimiter=",", names=True)
+    events = [json.loads(line) for line in lines]
+    for name in ("ccs", "scr", "conditioning"):
+        sent = np.array([np.nan if e[name] is None else e[name] for e in events])
+        np.testing.assert_allclose(sent, table[name][[e["index"] for e in events]], rtol=1e-5)
+    contact = np.array([e["in_contact"] for e in events])
+    assert not np.isfinite(sent[~contact]).any()  # only the session heads in contact have none
+    assert np.isfinite(sent[contact]).sum() == contact.sum() - s["sessions"]
 
 
 def test_stop_mid_contact_saves_everything(episode, tmp_path):

@@ -144,6 +144,28 @@ def test_frame_to_frame_cross_check(check, below, conditioning, fires):
         check_poses(steps, kfs)
 
 
+class PairConditioningRegistrar(ScriptedRegistrar):
+    """Answers with a conditioning that names the pair: ``ref + tar / 100``."""
+
+    def _answer(self, ref_index, tar_index, b, ok):
+        res = super()._answer(ref_index, tar_index, b, ok)
+        res.conditioning = torch.full((b,), ref_index + tar_index / 100, dtype=torch.float64)
+        return res
+
+
+def test_steps_report_the_accepted_registrations_conditioning():
+    """Each tracked frame carries the conditioning of the registration it was accepted on:
+    its keyframe's, or after the lazy rule the retry's against the new keyframe; session
+    heads and frames without contact carry NaN."""
+    reg = PairConditioningRegistrar(lambda r, t: (r, t) == (0, 3))
+    tr = Tracker(TrackingConfig(), reg)
+    steps = [tr.step(frame(i, c)) for i, c in enumerate([True] * 5 + [False])]
+    got = [s.conditioning for s in steps]
+    assert math.isnan(got[0]) and math.isnan(got[5])  # session head, contact loss
+    # frames 1, 2 against keyframe 0; frame 3 fails there and is accepted against frame 2
+    assert got[1:5] == [0 + 1 / 100, 0 + 2 / 100, 2 + 3 / 100, 2 + 4 / 100]
+
+
 def test_single_session_no_failures():
     steps, kfs, _ = run([True] * 6)
     assert [k.id for k in kfs] == [0, 1]
