@@ -159,10 +159,12 @@ def test_stop_mid_contact_saves_everything(episode, tmp_path):
     assert last >= s["frames"] - 2  # it stopped in contact
     kfs = json.loads((tmp_path / "keyframes.json").read_text())
     assert kfs[-1]["video_index"] == last  # the session tail was flushed as a keyframe
-    for name in ("poses.npy", "trajectory_tum.txt", "stats.json", "pose_graph.g2o", "mesh_fused.ply",
+    for name in ("poses.npy", "trajectory_tum.txt", "frames.csv", "stats.json", "pose_graph.g2o", "mesh_fused.ply",
                  "preview/preview.ply", "preview/preview.png"):
         assert (tmp_path / name).is_file(), name
     assert np.isfinite(np.load(tmp_path / "poses.npy")[last]).all()
+    table = np.genfromtxt(tmp_path / "frames.csv", delimiter=",", names=True)
+    assert len(table) == len(res.poses) and table["is_keyframe"][last] == 1 and np.isfinite(table["ccs"][last])
 
 
 def test_ctrl_c_saves_and_exits_cleanly(episode, tmp_path):
