@@ -110,16 +110,15 @@ def write_frames_csv(path: Path, fps: float, frame_group: np.ndarray, keyframe_o
             registration (NaN: a session head, or no contact), written empty when NaN.
     """
     t = len(frame_group)
-    session = np.array([session_of_kf.get(int(k), -1) for k in keyframe_of], dtype=np.int64).reshape(t)
-    is_kf = np.isin(np.arange(t), np.fromiter(keyframe_indices, dtype=np.int64, count=len(keyframe_indices)))
-
-    def num(x: float) -> str:
-        return "" if x != x else f"{x:.6g}"
-
-    lines = [",".join(FRAME_COLUMNS)]
-    for i in range(t):
-        lines.append(f"{i},{i / fps:.6f},{int(frame_group[i])},{int(session[i])},{int(keyframe_of[i])},"
-                     f"{int(is_kf[i])}," + ",".join(num(float(v)) for v in quality[i]))
+    session_by_id = np.full(max(session_of_kf, default=-1) + 2, -1, dtype=np.int64)  # last entry: id -1
+    session_by_id[list(session_of_kf)] = list(session_of_kf.values())
+    session = session_by_id[keyframe_of]
+    is_kf = np.zeros(t, dtype=np.int64)
+    is_kf[list(keyframe_indices)] = 1
+    scores = [["" if v != v else f"{v:.6g}" for v in row] for row in quality.tolist()]  # NaN: empty
+    lines = [",".join(FRAME_COLUMNS)] + [
+        f"{i},{i / fps:.6f},{frame_group[i]},{session[i]},{keyframe_of[i]},{is_kf[i]}," + ",".join(scores[i])
+        for i in range(t)]
     path.write_text("\n".join(lines) + "\n")
 
 
