@@ -218,7 +218,7 @@ class BackEnd:
             loops = [lp if self._depth_known(lp.ref_id, lp.tar_id) else replace(lp, depth_known=False) for lp in loops]
             loops = [self._declare_tilt(lp) for lp in loops]
         t_refine = time.perf_counter()
-        loops = self._remeasure(loops)
+        loops = self._within_tilt(self._remeasure(loops))
         t1 = time.perf_counter()
         self.stats.time_refine.append(t1 - t_refine)
         self.stats.time_loop_detection.append(t_refine - t0)
@@ -264,7 +264,9 @@ class BackEnd:
         """``loops`` without those between keyframes decoded from images (either one) whose
         measured out-of-plane rotation exceeds ``loop.decoded_max_tilt_deg``, the tilt
         NormalFlow's verification is specified for (docs/loops.md, "Tilted loops from
-        video"). They are kept for :meth:`held_loops` (reason ``tilted``)."""
+        video"). They are kept for :meth:`held_loops` (reason ``tilted``). Checked on the
+        verification's value and again on the re-measured one, which is what the graph
+        and ``loops.json`` get."""
         limit = self.config.loop.decoded_max_tilt_deg
         if limit is None or not loops:
             return loops
@@ -452,7 +454,8 @@ class BackEnd:
             self.stats.probes_ambiguous += 1
             return None
         x_T_y_meas = se3.inverse(q_T_c[b]) if y_ref else q_T_c[b]
-        return Loop(x, y, x_T_y_meas, float(ccs[b]), float(res.scr[b]), 0, se3.inverse(x_T_y), False, probe=True)
+        return Loop(x, y, x_T_y_meas, float(ccs[b]), float(res.scr[b]), 0, se3.inverse(x_T_y), False, probe=True,
+                    conditioning=float(res.conditioning[b]))
 
     def _footprint(self, kf_id: int) -> Footprint | None:
         return self.detector.footprint(self.keyframes[kf_id])

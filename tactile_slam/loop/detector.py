@@ -91,6 +91,9 @@ class Loop:
             about the sensor's x and y axes (``loop.decoded_tilt_sigma_deg``, set by the back
             end on loops between keyframes decoded from images); ``None``: the graph's
             default, like every other component.
+        conditioning: the verification's smallest-to-largest eigenvalue ratio of the
+            normal equations (:attr:`RegistrationResult.conditioning`): how evenly the
+            touch constrains the five registered directions (NaN in ``only_sift``).
     """
 
     ref_id: int
@@ -105,6 +108,7 @@ class Loop:
     ambiguous: bool = False
     depth_known: bool = True
     tilt_sigma_deg: float | None = None
+    conditioning: float = math.nan
 
     @property
     def says_where(self) -> bool:
@@ -118,7 +122,7 @@ class Loop:
                 "ccs": self.ccs, "scr": self.scr, "inliers": self.inliers,
                 "init_tar_T_ref": self.init_tar_T_ref.tolist(), "repetitive": self.repetitive,
                 "probe": self.probe, "ambiguous": self.ambiguous, "depth_known": self.depth_known,
-                "tilt_sigma_deg": self.tilt_sigma_deg}
+                "tilt_sigma_deg": self.tilt_sigma_deg, "conditioning": self.conditioning}
 
 
 @dataclass
@@ -442,8 +446,9 @@ class LoopDetector:
             ok &= ~far
         ref_T_tar = se3.inverse(T)
         rep = self.is_repetitive(query) if bool(ok.any()) else False
+        cond = res.conditioning.cpu()
         loops = [Loop(r, query.id, ref_T_tar[i], float(res.ccs[i]), float(res.scr[i]), inliers[i], init[i].clone(),
-                      rep or r in self._repetitive)
+                      rep or r in self._repetitive, conditioning=float(cond[i]))
                  for i, r in enumerate(cands) if bool(ok[i])]
         self.stats.loops += len(loops)
         return loops

@@ -91,6 +91,30 @@ def test_tilted_loop_from_images_is_held(tilted, tmp_path):
     assert len(_run(_decoded(kfs), decoded_max_tilt_deg=25.0).loops) == 1
 
 
+def test_tilt_limit_holds_the_re_measured_loop(tilted, monkeypatch):
+    """The limit applies to the value the graph gets: a loop whose verification is within
+    it but whose re-measurement over both keyframes ends beyond it is held as tilted."""
+    import tactile_slam.backend as backend
+
+    kfs, _ = tilted
+    limit = 20.5  # above the verified 20 deg, below the re-measured 21
+    assert len(_run(_decoded(kfs), decoded_max_tilt_deg=limit).loops) == 1
+    real = backend.refine_both_ways
+
+    def steeper(*args, **kwargs):
+        both = real(*args, **kwargs)
+        return replace(both, ref_T_tar=se3.exp(1.05 * se3.log(both.ref_T_tar)))  # 5 % more of the motion
+
+    monkeypatch.setattr(backend, "refine_both_ways", steeper)
+    be = _run(_decoded(kfs), decoded_max_tilt_deg=limit)
+    assert be.loops == [] and be.summary()["tilted_loops"] == 1
+    (held,) = be.held_loops()
+    assert held["reason"] == "tilted"
+    assert float(se3.tilt_deg(torch.tensor(held["ref_T_tar"]))) == pytest.approx(21.0, abs=0.2)
+    # from gradients the limit does not apply
+    assert len(_run(kfs, decoded_max_tilt_deg=limit).loops) == 1
+
+
 def test_small_tilt_from_images_is_accepted():
     kfs, _ = revisit_keyframes()  # 1.5 deg
     be = _run(_decoded(kfs))

@@ -64,6 +64,10 @@ def test_finds_true_loop_with_ground_truth_pose(scene, feature_map):
     assert det.stats.candidates >= 1 and det.stats.loops == len(loops)
     d = lp.to_dict()
     assert d["ref_id"] == 0 and len(d["ref_T_tar"]) == 4
+    # the loop carries its verification's conditioning (loops.json too)
+    res = det.verify(scene[2], [scene[0]], lp.init_tar_T_ref[None])
+    assert 0.0 < lp.conditioning <= 1.0 and d["conditioning"] == lp.conditioning
+    assert lp.conditioning == pytest.approx(float(res.conditioning[0]), rel=1e-6)
 
 
 def test_detection_on_device(scene, device):
@@ -208,6 +212,7 @@ def test_only_sift_mode_uses_lifted_estimate(scene):
     det = _detector(scene, mode="only_sift")
     loops = [lp for lp in det.detect(scene[2], [0, 1, 3], {}, {}, scene) if lp.ref_id == 0]
     assert len(loops) == 1 and math.isnan(loops[0].ccs) and det.stats.verified == 0
+    assert math.isnan(loops[0].conditioning)  # nothing verified
     torch.testing.assert_close(loops[0].ref_T_tar, se3.inverse(loops[0].init_tar_T_ref))
     rot, trans = _loop_error(loops[0], T_LOOP)
     assert rot < 1.5 and trans < 0.5 + abs(float(T_LOOP[2, 3])) * 1e3
