@@ -35,6 +35,12 @@ apart whose true contact patches overlap by >= 5 mm^2). Times are per-episode me
 (ms per frame per stage, ms per keyframe for the back end), then the median over
 episodes.
 
+Methods that merge sessions (GS-Offline) estimate frames the tracker alone leaves
+unposed, from another reference frame, so their pooled MAE is over a longer and harder
+motion. Each row therefore also has ``objects_shared_frames``: the same per-object MAE
+on the frames that every method of the episode estimates, all relative to the first of
+them (:func:`shared_frame_errors`).
+
 The JSON's ``results.runs`` lists each command that contributed (settings, date,
 machine, tables, wall time): with ``--append`` a command adds its tables to the report at
 ``--out`` instead of replacing it, so several commands with different settings (the
@@ -58,7 +64,8 @@ from tactile_slam.cli.arguments import positive_int
 from tactile_slam.cli.eval import evaluate_run
 from tactile_slam.config import Config, load_config
 from tactile_slam.eval.loop_metrics import gt_loop_pairs, loop_flags, loop_precision_recall
-from tactile_slam.eval.tracking_metrics import AXES
+from tactile_slam.eval.tracking_metrics import AXES, per_axis_errors
+from tactile_slam.eval.trajectory import relative_to, valid_mask
 from tactile_slam.geometry.frame import FrameBuilder
 from tactile_slam.registration.baselines import register_fpfh, register_icp
 from tactile_slam.registration.result import RegistrationError
@@ -283,6 +290,33 @@ def run_method(episode_dir: Path, method: str, run_dir: Path, config: Config) ->
     return out, errors[np.isfinite(errors).all(axis=1)]
 
 
+def shared_frame_errors(poses: dict[str, np.ndarray], object_T_sensor: np.ndarray,
+                        in_contact: np.ndarray) -> tuple[int | None, dict[str, np.ndarray]]:
+    """Per-axis errors of several runs of one episode on the frames that **every** run
+    estimates, all taken relative to the first of them, so that methods that estimate
+    different frames (a method that merges sessions estimates more, and from another
+    reference) are compared on the same motion.
+
+    Args:
+        poses: method -> ``(T, 4, 4)`` ``start_T_frame`` (``poses.npy``, NaN rows unestimated).
+        object_T_sensor: ``(T, 4, 4)`` ground truth.
+        in_contact: ``(T,)`` bool, the frames scored.
+
+    Returns:
+        ``(reference frame or None when no frame is shared, method -> (N, 6) errors
+        [x, y, z mm, rx, ry, rz deg] over the shared frames after the reference)``.
+    """
+    use = np.asarray(in_contact, dtype=bool).copy()
+    for p in poses.values():
+        use &= valid_mask(p)
+    if not use.any():
+        return None, {m: np.zeros((0, 6)) for m in poses}
+    ref = int(np.argmax(use))
+    use[ref] = False
+    gt = relative_to(object_T_sensor, ref)
+    return ref, {m: per_axis_errors(relative_to(p, ref), gt)[use] for m, p in poses.items()}
+
+
 # ------------------------------------------------------------------ aggregation
 
 
@@ -295,9 +329,11 @@ def _mae(errors: list[np.ndarray]) -> dict:
     return out
 
 
-def summarise(episodes: list[dict], errors: dict) -> dict:
+def summarise(episodes: list[dict], errors: dict, shared: dict | None = None) -> dict:
     """Per table, per method: per-object pooled MAE, the mean over objects (ball and
-    cylinder excluded), loop totals and median stage times."""
+    cylinder excluded), loop totals and median stage times; with ``shared`` (the errors
+    of :func:`shared_frame_errors`, keyed like ``errors``) also the per-object MAE on the
+    frames every method of an episode estimates (``objects_shared_frames``)."""
     tables: dict = {}
     for ep in episodes:
         for m in ep["methods"]:
@@ -314,6 +350,8 @@ def summarise(episodes: list[dict], errors: dict) -> dict:
             row = {"label": LABELS[m], "objects": objs, "mean_over_objects": mean, "mean_objects": kept,
                    "estimated_fraction": float(np.mean([e["estimated_fraction"] for e in eps])),
                    "timing_ms_median": median_per_key([e["timing_ms"] for e in eps])}
+            if shared is not None:
+                row["objects_shared_frames"] = {o: _mae(shared.get((table, m, o), [])) for o in per_obj}
             if any("keyframes" in e for e in eps):
                 row["keyframes_mean"] = float(np.mean([e.get("keyframes", 0) for e in eps]))
                 row["sessions_mean"] = float(np.mean([e.get("sessions", 0) for e in eps]))
@@ -393,6 +431,15 @@ def table_iv(summary: dict) -> str:
             cells = [f"{row['objects'][o]['rot_deg']:.3f} / {row['objects'][o]['trans_mm']:.3f}"
                      if o in row["objects"] else "-" for o in objects]
             lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
+        if all("objects_shared_frames" in row for row in methods.values()):
+            lines += ["", "On the frames every method estimates (each episode from the first of them):", "",
+                      "| method | " + " | ".join(f"{o} rot / trans" for o in objects) + " |",
+                      "|---|" + "---|" * len(objects)]
+            for row in methods.values():
+                sh = row["objects_shared_frames"]
+                cells = [f"{sh[o]['rot_deg']:.3f} / {sh[o]['trans_mm']:.3f} ({sh[o]['n_frames']})"
+                         if o in sh and sh[o]["n_frames"] else "- (0)" for o in objects]
+                lines.append(f"| {row['label']} | " + " | ".join(cells) + " |")
         lines.append("")
     return "\n".join(lines)
 
@@ -473,7 +520,7 @@ def run(args) -> Path:
     cache = Path(args.cache)
     tmp = None if args.work else tempfile.TemporaryDirectory(prefix="bench_tracking_")
     work = Path(args.work or tmp.name)
-    episodes, errors = [], {}
+    episodes, errors, shared = [], {}, {}
     t_start = time.perf_counter()
     try:
         for spec in specs:
@@ -490,11 +537,17 @@ def run(args) -> Path:
                 mae = res["per_axis_mae"]
                 print(f"{spec.name:45s} {LABELS[m]:13s} rot {np.mean([mae[k] for k in ROT]):7.3f} deg  "
                       f"trans {np.mean([mae[k] for k in TRANS]):7.3f} mm  {res['wall_s']:6.1f} s", flush=True)
+            ep = read_episode(ep_dir)
+            ref, errs = shared_frame_errors({m: np.load(work / spec.name / m / "poses.npy") for m in spec.methods},
+                                            ep.object_T_sensor, ep.in_contact)
+            entry["shared_frames"] = {"reference_frame": ref, "frames": int(len(next(iter(errs.values()))))}
+            for m, e in errs.items():
+                shared.setdefault((spec.table, m, spec.object), []).append(e)
             episodes.append(entry)
     finally:
         if tmp is not None:
             tmp.cleanup()
-    summary = summarise(episodes, errors)
+    summary = summarise(episodes, errors, shared)
     run_info = {"settings": {k: v for k, v in vars(args).items() if k != "func"},
                 "date": time.strftime("%Y-%m-%dT%H:%M:%S"), "machine": machine_info(),
                 "tables": sorted(summary), "total_wall_s": time.perf_counter() - t_start}

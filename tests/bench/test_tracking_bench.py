@@ -64,6 +64,12 @@ def test_tiny_run_writes_finite_report(tmp_path):
     assert loops["reported"] == loops["correct"] + loops["false"] and loops["gt_loops"] >= loops["found"]
     assert loops["correct_full_pose"] == loops["correct"]  # gradient-level loops declare no tilt sigma
     assert "gs_offline_zero_false_loops" in res["targets"]
+    # on the frames both estimate, from the same reference: no more frames than either's own
+    ep = res["episodes"][0]
+    for m in ("gelslam", "icp"):
+        sh = row[m]["objects_shared_frames"]["seed"]
+        assert 0 < sh["n_frames"] == ep["shared_frames"]["frames"] <= row[m]["objects"]["seed"]["n_frames"]
+    assert "On the frames every method estimates" in tracking.table_iv(res["summary"])
     assert out.with_suffix(".png").is_file()
     table = tracking.table_iv(res["summary"])
     assert "| GS-Offline |" in table and "| ICP |" in table and "nan" not in table.split("| ICP |")[1].split("|")[1]
@@ -137,6 +143,33 @@ def _summary(rot: dict) -> dict:
                                        "mean_over_objects": {"rot_deg": sum(per.values()) / len(per)},
                                        "loops": {"episodes_with_false_loops": 0}}
                                    for m, per in rot.items()}}
+
+
+def test_shared_frame_errors_compare_on_the_same_frames_and_reference():
+    """Two runs of one episode: one estimates every frame from frame 0 exactly, the other
+    only frames 3.. from frame 3, with a known constant error; the shared frames are 4..,
+    both from frame 3, and the errors are 0 and that constant."""
+    import numpy as np
+
+    from tactile_slam.eval.trajectory import relative_to
+    from tests.registration.surfaces import rigid
+
+    T = 9
+    gt = np.stack([rigid(rz_deg=2.0 * i, tx_mm=0.3 * i, rx_deg=0.5 * i).numpy() for i in range(T)])
+    exact = relative_to(gt, 0)
+    late = np.full_like(gt, np.nan)
+    bias = rigid(ry_deg=0.7).numpy()
+    late[3:] = relative_to(gt, 3)[3:] @ bias  # every frame 0.7 deg off about its own y axis
+    late[3] = np.eye(4)
+    contact = np.ones(T, bool)
+    contact[6] = False
+    ref, errs = tracking.shared_frame_errors({"a": exact, "b": late}, gt, contact)
+    assert ref == 3 and errs["a"].shape == errs["b"].shape == (4, 6)  # frames 4, 5, 7, 8
+    np.testing.assert_allclose(errs["a"], 0.0, atol=1e-9)
+    np.testing.assert_allclose(errs["b"][:, 4], 0.7, atol=0.05)  # ry
+    assert np.abs(errs["b"][:, :3]).max() < 1e-9  # a rotation about the frame's own origin
+    ref, errs = tracking.shared_frame_errors({"a": exact, "b": np.full_like(gt, np.nan)}, gt, contact)
+    assert ref is None and errs["a"].shape == (0, 6)
 
 
 def test_targets_need_a_real_reduction():
