@@ -186,6 +186,21 @@ def motion_range(start_T_curr: np.ndarray, frames: np.ndarray | None = None) -> 
     return {k: float(d[:, i].sum()) for i, k in enumerate(AXES)}
 
 
+def frame_steps(poses: np.ndarray, frames: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Motion between consecutive frames: rotation angle (deg) and translation (mm) of
+    ``inv(T_i) T_{i+1}`` for poses ``(T, 4, 4)`` metres, ``(T - 1,)`` each; NaN where either
+    frame is outside ``frames`` (``(T,)`` bool) or has no pose."""
+    T = check_trajectory(poses)
+    rel = np.linalg.inv(T[:-1]) @ T[1:]
+    deg = geodesic_deg(rel[:, :3, :3], np.eye(3))
+    mm = np.linalg.norm(rel[:, :3, 3], axis=1) * 1000.0
+    use = np.isfinite(deg) & np.isfinite(mm)
+    if frames is not None:
+        f = np.asarray(frames, dtype=bool)
+        use &= f[:-1] & f[1:]
+    return np.where(use, deg, np.nan), np.where(use, mm, np.nan)
+
+
 def tracking_report(est: np.ndarray, gt: np.ndarray, frames: np.ndarray | None = None,
                     travel_mm: float = 5.0) -> dict:
     """Every tracking metric of one trial (see the module docstring).

@@ -36,7 +36,7 @@ import torch
 import yaml
 
 from tactile_slam.config import GELSIGHT_MINI_ENV, MODELS_DIR, Config, gelsight_mini_data
-from tactile_slam.eval.tracking_metrics import motion_range
+from tactile_slam.eval.tracking_metrics import frame_steps, motion_range
 from tactile_slam.eval.trajectory import relative_to
 from tactile_slam.io.gradients import EPISODE_NPZ
 from tactile_slam.io.scan import VIDEO_NAME
@@ -52,6 +52,34 @@ DEFAULT_COLOUR_MODEL = MODELS_DIR / "gelsight_mini_colour.pt"
 
 class EpisodeError(ValueError):
     """An episode folder is missing files or holds inconsistent data."""
+
+
+class ImplausibleMotionWarning(UserWarning):
+    """The simulated motion moves faster in some frame than the tracker accepts as a hand's
+    motion (``tracking.max_deg_per_s`` / ``max_mm_per_s``): on a very irregular or
+    non-convex mesh the contact path can jump across a concavity."""
+
+
+def motion_steps(poses: np.ndarray, in_contact: np.ndarray, config: Config) -> dict:
+    """The largest step between consecutive in-contact frames and how many steps exceed
+    the tracker's motion limits at the sensor's frame rate (a limit that is ``None``
+    counts nothing). JSON/YAML-ready."""
+    deg, mm = frame_steps(poses, in_contact)
+    fps, tc = config.sensor.fps, config.tracking
+    lim_deg = None if tc.max_deg_per_s is None else tc.max_deg_per_s / fps
+    lim_mm = None if tc.max_mm_per_s is None else tc.max_mm_per_s / fps
+    over = np.zeros(len(deg), bool)
+    with np.errstate(invalid="ignore"):
+        if lim_deg is not None:
+            over |= deg > lim_deg
+        if lim_mm is not None:
+            over |= mm > lim_mm
+    finite = np.isfinite(deg)
+    return {"max_deg_per_frame": float(deg[finite].max()) if finite.any() else 0.0,
+            "max_mm_per_frame": float(mm[finite].max()) if finite.any() else 0.0,
+            "limit_deg_per_frame": lim_deg, "limit_mm_per_frame": lim_mm,
+            "steps_over_limit": int(over.sum()),
+            "first_step_over_limit": int(np.argmax(over)) if over.any() else None}
 
 
 class SyntheticBackgroundWarning(UserWarning):
@@ -233,6 +261,14 @@ def simulate_episode(out_dir: str | Path, settings: SimulationSettings, config: 
         cv2.imwrite(str(out / BACKGROUND), background)
     first = int(np.argmax(in_contact)) if in_contact.any() else 0
     gt_rel = relative_to(motion.object_T_sensor, first)
+    steps = motion_steps(motion.object_T_sensor, in_contact, config)
+    if steps["steps_over_limit"]:
+        warnings.warn(f"{settings.object}: {steps['steps_over_limit']} simulated frame steps move faster than the "
+                      f"tracker accepts (up to {steps['max_deg_per_frame']:.1f} deg and "
+                      f"{steps['max_mm_per_frame']:.2f} mm in one frame, first after frame "
+                      f"{steps['first_step_over_limit']}; limits {steps['limit_deg_per_frame']} deg, "
+                      f"{steps['limit_mm_per_frame']} mm): the contact path jumps on this surface, and the tracker "
+                      "will refuse those steps (meta.yaml motion_steps)", ImplausibleMotionWarning, stacklevel=2)
     meta = {
         "format": "tactile-slam-episode",
         "version": 1,
@@ -253,6 +289,7 @@ def simulate_episode(out_dir: str | Path, settings: SimulationSettings, config: 
         "motion": _plain(dataclasses.asdict(motion_config)),
         "motion_revision": MOTION_REVISION,
         "motion_range_from_first_contact": motion_range(gt_rel[first:], in_contact[first:]),
+        "motion_steps": steps,
         "image": None if settings.level == "gradients" else {
             "colour_model": str(settings.colour_model or DEFAULT_COLOUR_MODEL),
             "background": background_source, "noise_std": settings.noise_std},

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from tactile_slam.eval.tracking_metrics import (ate, geodesic_deg, motion_range, per_axis_errors, per_axis_mae,
+from tactile_slam.eval.tracking_metrics import (ate, frame_steps, geodesic_deg, motion_range, per_axis_errors, per_axis_mae,
                                                 pose_vector, rpe, tracking_report, travel_pairs, umeyama)
 from tactile_slam.eval.trajectory import TrajectoryError, read_tum, relative_to, valid_mask, write_tum
 
@@ -113,6 +113,17 @@ def test_motion_range_and_report():
     rep = tracking_report(est, gt)
     assert rep["estimated_fraction"] == pytest.approx(0.75)
     assert rep["per_axis_mae"]["n_frames"] == 2
+
+
+def test_frame_steps():
+    gt = np.stack([pose(rz(np.deg2rad(a)), (0, 0.001 * k, 0)) for k, a in enumerate([0, 10, 5, 15])])
+    deg, mm = frame_steps(gt)
+    np.testing.assert_allclose(deg, [10.0, 5.0, 10.0], atol=1e-9)
+    np.testing.assert_allclose(mm, [1.0, 1.0, 1.0], atol=1e-9)  # rotations about the origin keep |t| steps
+    deg, mm = frame_steps(gt, np.array([True, True, False, True]))
+    assert deg[0] == pytest.approx(10.0) and np.isnan(deg[1:]).all() and np.isnan(mm[1:]).all()
+    gt[1] = np.nan
+    assert np.isnan(frame_steps(gt)[0][:2]).all()
 
 
 def test_relative_to_and_validation():

@@ -8,7 +8,8 @@ from tactile_slam.calibration.colour_model import ColourModel
 from tactile_slam.cli.main import main
 from tactile_slam.io.video import VideoSource
 from tactile_slam.config import GELSIGHT_MINI_ENV, REPO_ROOT, gelsight_mini_data
-from tactile_slam.sim.episode import (EpisodeError, SimulationSettings, SyntheticBackgroundWarning,
+from tactile_slam.sim.episode import (EpisodeError, ImplausibleMotionWarning, SimulationSettings,
+                                      SyntheticBackgroundWarning,
                                       background_source, compose_images, load_background_image, read_episode,
                                       simulate_episode, synthetic_background)
 from tactile_slam.sim.renderer import GelRenderer
@@ -39,6 +40,35 @@ def test_layout_and_contents(episode):
     maps = GelRenderer(ep.mesh()).render(ep.object_T_sensor[[12, 20]])
     assert np.allclose(g[[12, 20]].astype(np.float32), maps.gradients.numpy(), atol=2e-3)
     assert np.array_equal(c[[12, 20]], maps.contact.numpy())
+
+
+def test_motion_steps_in_meta_and_a_warning_beyond_the_tracker_limits(episode, tmp_path):
+    """meta.yaml records the largest frame step among in-contact frames, computed here
+    independently; an episode whose steps exceed the tracker's limits warns."""
+    import warnings
+
+    from tactile_slam.config import Config
+
+    ep = read_episode(episode)
+    steps = yaml.safe_load((episode / "meta.yaml").read_text())["motion_steps"]
+    T = ep.object_T_sensor
+    both = ep.in_contact[:-1] & ep.in_contact[1:]
+    rel = np.linalg.inv(T[:-1]) @ T[1:]
+    ang = np.degrees(np.arccos(np.clip((np.trace(rel[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)))
+    assert steps["max_deg_per_frame"] == pytest.approx(ang[both].max(), rel=1e-6)
+    assert steps["max_mm_per_frame"] == pytest.approx(np.linalg.norm(rel[both, :3, 3], axis=1).max() * 1e3, rel=1e-6)
+    assert steps["limit_deg_per_frame"] == pytest.approx(Config().tracking.max_deg_per_s / 25.0)
+    assert steps["steps_over_limit"] == 0 and steps["first_step_over_limit"] is None  # a smooth seed path
+    strict = Config()
+    strict.tracking.max_deg_per_s = 1e-3
+    with pytest.warns(ImplausibleMotionWarning, match="simulated frame steps move faster"):
+        simulate_episode(tmp_path, SimulationSettings(object="seed", kind="tracking", frames=24, seed=3), strict)
+    steps = yaml.safe_load((tmp_path / "meta.yaml").read_text())["motion_steps"]
+    assert steps["steps_over_limit"] == int((ang[both] > 1e-3 / 25.0).sum()) > 0
+    assert steps["first_step_over_limit"] >= 10  # the lead-in is out of contact
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ImplausibleMotionWarning)  # the default limits: no warning
+        simulate_episode(tmp_path / "again", SimulationSettings(object="seed", kind="tracking", frames=24, seed=3))
 
 
 def test_deterministic(episode, tmp_path):
