@@ -50,6 +50,7 @@ gradient set at 500 frames, the image set, the contact-loss set) make one report
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import tempfile
 import time
@@ -121,14 +122,30 @@ class EpisodeSpec:
     level: str
     frames: int
     methods: tuple[str, ...]
+    digest: str | None = None  # of a mesh file's bytes (episode_specs sets it)
+
+    @property
+    def label(self) -> str:
+        """The object's name in the report: a catalogue name, or a mesh file's name."""
+        return object_label(self.object)
 
     @property
     def name(self) -> str:
-        return f"{self.kind}_{self.level}_{self.object}_s{self.seed}_f{self.frames}"
+        """Episode folder and report name; a mesh file's adds a digest of its bytes, so an
+        edited mesh is simulated again instead of read from the cache."""
+        obj = self.label if self.digest is None else f"{self.label}-{self.digest}"
+        return f"{self.kind}_{self.level}_{obj}_s{self.seed}_f{self.frames}"
 
     @property
     def table(self) -> str:
         return f"{self.kind}/{self.level}"
+
+
+def object_label(obj: str) -> str:
+    """``obj`` if it is a catalogue object, else the mesh file's name (``torus.ply``)."""
+    from tactile_slam.sim.objects import OBJECTS
+
+    return obj if obj in OBJECTS else Path(obj).name
 
 
 def episode_specs(args) -> list[EpisodeSpec]:
@@ -156,6 +173,18 @@ def episode_specs(args) -> list[EpisodeSpec]:
     specs = [s for s in specs if s.methods]
     if not specs:
         raise BenchConfigError("the flags select no episode")
+    from tactile_slam.sim.objects import OBJECTS
+
+    missing = sorted({s.object for s in specs if s.object not in OBJECTS and not Path(s.object).is_file()})
+    if missing:
+        raise BenchConfigError(f"unknown objects {missing}: give catalogue names {sorted(OBJECTS)} or mesh files")
+    digests = {o: hashlib.sha1(Path(o).read_bytes()).hexdigest()[:10] for o in {s.object for s in specs}
+               if o not in OBJECTS}
+    specs = [replace(s, digest=digests.get(s.object)) for s in specs]
+    labels: dict[str, str] = {}
+    for s in specs:
+        if labels.setdefault(s.label, s.object) != s.object:
+            raise BenchConfigError(f"objects {labels[s.label]!r} and {s.object!r} share the report name {s.label!r}")
     return specs
 
 
@@ -526,14 +555,15 @@ def run(args) -> Path:
         for spec in specs:
             t0 = time.perf_counter()
             ep_dir = cached_episode(cache, spec, Config())
-            entry = {"name": spec.name, "object": spec.object, "seed": spec.seed, "kind": spec.kind,
+            entry = {"name": spec.name, "object": spec.label, "seed": spec.seed, "kind": spec.kind,
+                     "object_file": None if spec.label == spec.object else str(Path(spec.object).resolve()),
                      "level": spec.level, "background": read_episode(ep_dir).background, "frames": spec.frames,
                      "table": spec.table,
                      "simulate_or_load_s": time.perf_counter() - t0, "methods": {}}
             for m in spec.methods:
                 res, err = run_method(ep_dir, m, work / spec.name / m, config)
                 entry["methods"][m] = res
-                errors.setdefault((spec.table, m, spec.object), []).append(err)
+                errors.setdefault((spec.table, m, spec.label), []).append(err)
                 mae = res["per_axis_mae"]
                 print(f"{spec.name:45s} {LABELS[m]:13s} rot {np.mean([mae[k] for k in ROT]):7.3f} deg  "
                       f"trans {np.mean([mae[k] for k in TRANS]):7.3f} mm  {res['wall_s']:6.1f} s", flush=True)
@@ -542,7 +572,7 @@ def run(args) -> Path:
                                             ep.object_T_sensor, ep.in_contact)
             entry["shared_frames"] = {"reference_frame": ref, "frames": int(len(next(iter(errs.values()))))}
             for m, e in errs.items():
-                shared.setdefault((spec.table, m, spec.object), []).append(e)
+                shared.setdefault((spec.table, m, spec.label), []).append(e)
             episodes.append(entry)
     finally:
         if tmp is not None:

@@ -32,6 +32,29 @@ def test_episode_set_from_flags(tmp_path):
     assert len({s.name for s in specs}) == len(specs)
 
 
+def test_mesh_file_objects_are_named_by_file_and_content(tmp_path):
+    """A user mesh is reported under its file name; its episode name carries a digest of
+    the file, so an edited mesh is not read from the cache; unknown objects and two files
+    of one name are refused before any work."""
+    from tactile_slam.sim.heldout import write_heldout
+
+    (rock,) = write_heldout(tmp_path / "a", ("rock",), resolution_mm=1.0)
+    args = parse(tmp_path, "--objects", str(rock), "seed", "--seeds", "0", "--protocol", "tracking",
+                 "--level", "gradients")
+    mesh_spec, seed_spec = tracking.episode_specs(args)
+    assert mesh_spec.label == "rock.ply" and seed_spec.label == "seed" and seed_spec.name == "tracking_gradients_seed_s0_f200"
+    first = mesh_spec.name
+    assert first.startswith("tracking_gradients_rock.ply-") and "/" not in first
+    write_heldout(tmp_path / "a", ("rock",), resolution_mm=1.0, seed=1)  # the same file, edited
+    assert tracking.episode_specs(args)[0].name != first
+    with pytest.raises(tracking.BenchConfigError, match="unknown objects"):
+        tracking.episode_specs(parse(tmp_path, "--objects", "sed", str(tmp_path / "none.ply")))
+    (other,) = write_heldout(tmp_path / "b", ("rock",), resolution_mm=1.0)
+    with pytest.raises(tracking.BenchConfigError, match="share the report name"):
+        tracking.episode_specs(parse(tmp_path, "--objects", str(rock), str(other), "--protocol", "tracking",
+                                     "--level", "gradients"))
+
+
 @pytest.mark.parametrize("extra", [["--methods", "nf", "foo"], ["--methods", "gs-imagesift"],
                                    ["--protocol", "tracking", "--level", "image", "--image-methods", "icp"],
                                    ["--protocol", "contact_loss", "--loss-methods", "icp"]])
