@@ -555,9 +555,10 @@ def run(args) -> Path:
         for spec in specs:
             t0 = time.perf_counter()
             ep_dir = cached_episode(cache, spec, Config())
+            ep = read_episode(ep_dir)
             entry = {"name": spec.name, "object": spec.label, "seed": spec.seed, "kind": spec.kind,
                      "object_file": None if spec.label == spec.object else str(Path(spec.object).resolve()),
-                     "level": spec.level, "background": read_episode(ep_dir).background, "frames": spec.frames,
+                     "level": spec.level, "background": ep.background, "frames": spec.frames,
                      "table": spec.table,
                      "simulate_or_load_s": time.perf_counter() - t0, "methods": {}}
             for m in spec.methods:
@@ -567,7 +568,6 @@ def run(args) -> Path:
                 mae = res["per_axis_mae"]
                 print(f"{spec.name:45s} {LABELS[m]:13s} rot {np.mean([mae[k] for k in ROT]):7.3f} deg  "
                       f"trans {np.mean([mae[k] for k in TRANS]):7.3f} mm  {res['wall_s']:6.1f} s", flush=True)
-            ep = read_episode(ep_dir)
             ref, errs = shared_frame_errors({m: np.load(work / spec.name / m / "poses.npy") for m in spec.methods},
                                             ep.object_T_sensor, ep.in_contact)
             entry["shared_frames"] = {"reference_frame": ref, "frames": int(len(next(iter(errs.values()))))}
