@@ -288,6 +288,7 @@ def simulate_episode(out_dir: str | Path, settings: SimulationSettings, config: 
         "gel": dataclasses.asdict(renderer.render_config),
         "motion": _plain(dataclasses.asdict(motion_config)),
         "motion_revision": MOTION_REVISION,
+        "motion_paths": {"paths": motion.paths, "replanned": motion.replanned},
         "motion_range_from_first_contact": motion_range(gt_rel[first:], in_contact[first:]),
         "motion_steps": steps,
         "image": None if settings.level == "gradients" else {

@@ -33,14 +33,16 @@ import numpy as np
 from scipy.ndimage import gaussian_filter1d
 from scipy.spatial.transform import Rotation, Slerp
 
+from tactile_slam.eval.tracking_metrics import frame_steps
 from tactile_slam.sim.renderer import GelRenderer
 from tactile_slam.sim.surface import SurfaceGuide, farthest_points, sample_surface
 
 KINDS = ("tracking", "contact_loss", "scan", "long")
-MOTION_REVISION = 2
+MOTION_REVISION = 3
 """Bumped whenever the same settings and seed give other poses, so that cached episodes
 made by an earlier motion are simulated again. 2 (2026-11-29): touch paths smoothed over
-time (:func:`_path_poses`)."""
+time (:func:`_path_poses`). 3 (2026-12-03): paths faster than a hand re-planned (walked,
+coarser normals, slower; :func:`_path_poses`); paths that were plausible are unchanged."""
 DEFAULT_FRAMES = {"tracking": 520, "contact_loss": 520, "scan": 3000, "long": 10000}
 
 
@@ -65,6 +67,14 @@ class MotionConfig:
         approach_frames / air_frames: frames per approach (and retract) / air move.
         loss_period / loss_length: contact-loss protocol (frames).
         press_stride: pixel stride of the ray grid that sets the indentation.
+        max_step_deg / max_step_mm: the fastest a hand moves the pressed sensor in one
+            frame (125 deg/s and 25 mm/s at 25 fps, the tracker's motion limits).
+        guide_scales: coarser normal fields (multiples of the surface guide's smoothing)
+            tried, with the path walked along the surface, for a path that moves faster
+            than that on the plain closest points (non-convex or very rough meshes).
+        slow_downs: slower speeds along the same path, tried (each with every normal
+            field) when no field makes it plausible (tight curvature: a fast slide round a
+            small object turns the sensor too fast whatever the smoothing).
     """
 
     lead_in: int = 10
@@ -80,16 +90,24 @@ class MotionConfig:
     loss_period: int = 100
     loss_length: int = 25
     press_stride: int = 6
+    max_step_deg: float = 5.0
+    max_step_mm: float = 1.0
+    guide_scales: tuple[float, ...] = (2.0, 4.0, 8.0)
+    slow_downs: tuple[float, ...] = (0.5, 0.25)
 
 
 @dataclass
 class Motion:
     """A motion: ``object_T_sensor`` ``(T, 4, 4)`` float64 metres and ``pressed``
-    ``(T,)`` bool, the frames where the motion intends contact."""
+    ``(T,)`` bool, the frames where the motion intends contact; ``paths`` contact paths
+    (touches), ``replanned`` of them moved too fast as planned and were re-planned
+    (:func:`_path_poses`)."""
 
     object_T_sensor: np.ndarray
     pressed: np.ndarray
     kind: str
+    paths: int = 1
+    replanned: int = 0
 
 
 # ---------------------------------------------------------------- pose building
@@ -176,15 +194,47 @@ def _path_poses(renderer, guide, t, p0, n0, e1, e2, amp_m, cycles, twist, rolls,
     of 2 frames). On a textured surface the closest point to a smooth path clings to the
     nearest crest and then jumps to the next one, a texture period in one frame (up to
     0.44 mm against a median step of 0.02-0.07 mm); a hand-held sensor glides over the
-    crests instead. The depth is set afterwards against the true surface."""
+    crests instead. The depth is set afterwards against the true surface.
+
+    Where those poses move faster than a hand (:func:`too_fast`: across a concavity the
+    closest point jumps to another sheet, deep relief turns the normal by tens of degrees
+    per frame, a fast slide round a tight curve turns the sensor with it), the path is
+    walked along the surface instead (:meth:`SurfaceGuide.walk`) with each coarser normal
+    field of ``cfg.guide_scales`` in turn, then all of it again at each slower speed of
+    ``cfg.slow_downs`` (the same path, covered more slowly), and the first plausible
+    candidate is kept (else the one with the fewest too-fast steps). A path that is
+    plausible as it is stays exactly as it was."""
     u = np.stack([_smooth_series(t, rng, cycles, amp_m), _smooth_series(t, rng, cycles, amp_m)], -1)
-    targets = p0 + u[:, :1] * e1 + u[:, 1:] * e2
-    points, normals = guide.project(targets)
-    points = gaussian_filter1d(points, 2.0, axis=0, mode="nearest")
-    normals = gaussian_filter1d(normals, 2.0, axis=0, mode="nearest")
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    xh = transported_x(-normals, e1)
-    return pressed_poses(renderer, points, normals, xh, twist, rolls[0], rolls[1], depth_m, cfg.press_stride)
+    touching = np.asarray(depth_m) > 0
+    frames = np.arange(len(t), dtype=np.float64)
+    best, best_count, best_key = None, None, None
+    for speed in (1.0, *cfg.slow_downs):
+        us = u if speed == 1.0 else np.stack([np.interp(speed * frames, frames, c) for c in u.T], -1)
+        targets = p0 + us[:, :1] * e1 + us[:, 1:] * e2
+        for scale in (None, *cfg.guide_scales):
+            points, normals = guide.project(targets) if scale is None else guide.walk(targets, scale)
+            points = gaussian_filter1d(points, 2.0, axis=0, mode="nearest")
+            normals = gaussian_filter1d(normals, 2.0, axis=0, mode="nearest")
+            normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+            xh = transported_x(-normals, e1)
+            poses = pressed_poses(renderer, points, normals, xh, twist, rolls[0], rolls[1], depth_m, cfg.press_stride)
+            count = too_fast(poses, touching, cfg).sum()
+            if best is None or count < best_count:
+                best, best_count, best_key = poses, count, (speed, scale)
+            if count == 0:
+                break
+        if best_count == 0:
+            break
+    return best, best_key != (1.0, None)
+
+
+def too_fast(poses: np.ndarray, touching: np.ndarray, cfg: MotionConfig) -> np.ndarray:
+    """``(T - 1,)`` bool: steps between consecutive ``touching`` frames of ``poses``
+    ``(T, 4, 4)`` that turn by more than ``cfg.max_step_deg`` or move by more than
+    ``cfg.max_step_mm``."""
+    deg, mm = frame_steps(poses, touching)
+    with np.errstate(invalid="ignore"):
+        return (deg > cfg.max_step_deg) | (mm > cfg.max_step_mm)
 
 
 def _object_size(renderer: GelRenderer) -> float:
@@ -214,14 +264,15 @@ def tracking_motion(renderer: GelRenderer, n_frames: int = 520, seed: int = 0, c
     lo, hi = cfg.depth_mm
     mid, half = 0.5 * (lo + hi), 0.5 * (hi - lo)
     depth = mid + half * np.sin(2 * np.pi * rng.uniform(1.5, 3.0) * t * cfg.cycles / 1.6 + rng.uniform(0, 2 * np.pi))
-    poses = _path_poses(renderer, guide, t, p0, n0, e1, e2, amp, cfg.cycles, twist, rolls, depth * 1e-3, rng, cfg)
+    poses, replanned = _path_poses(renderer, guide, t, p0, n0, e1, e2, amp, cfg.cycles, twist, rolls, depth * 1e-3,
+                                   rng, cfg)
     pressed = np.ones(n, dtype=bool)
     if contact_loss:
         pressed = (np.arange(n) % cfg.loss_period) < cfg.loss_period - cfg.loss_length
         poses[~pressed] = lift(poses[~pressed], (depth[~pressed] + cfg.lift_mm) * 1e-3)
     lead = lift(np.repeat(poses[:1], cfg.lead_in, axis=0), (depth[0] + 2 * cfg.lift_mm) * 1e-3)
     return Motion(np.concatenate([lead, poses]), np.concatenate([np.zeros(cfg.lead_in, bool), pressed]),
-                  "contact_loss" if contact_loss else "tracking")
+                  "contact_loss" if contact_loss else "tracking", 1, int(replanned))
 
 
 def _air_path(a: np.ndarray, b: np.ndarray, n: int, centre: np.ndarray, far: float) -> np.ndarray:
@@ -274,7 +325,7 @@ def scan_motion(renderer: GelRenderer, n_frames: int = 3000, seed: int = 0, conf
     lo, hi = cfg.depth_mm
     poses, pressed = [], []
     prev_end = None
-    total = 0
+    total = n_paths = n_replanned = 0
     for visit in range(10 * len(order)):  # the tour repeats if random touch lengths fall short
         if total >= n_frames:
             break
@@ -290,7 +341,8 @@ def scan_motion(renderer: GelRenderer, n_frames: int = 3000, seed: int = 0, conf
         twist = rng.uniform(-np.pi, np.pi) + np.deg2rad(_smooth_series(t, rng, 8.0, 0.6 * cfg.twist_deg, 1))
         rolls = [np.deg2rad(_smooth_series(t, rng, 8.0, 0.6 * cfg.roll_deg, 1)) for _ in range(2)]
         amp = rng.uniform(0.8e-3, 2.5e-3)
-        touch = _path_poses(renderer, guide, t, p0, n0, e1, e2, amp, 8.0, twist, rolls, depth, rng, cfg)
+        touch, replanned = _path_poses(renderer, guide, t, p0, n0, e1, e2, amp, 8.0, twist, rolls, depth, rng, cfg)
+        n_replanned += int(replanned)
         if prev_end is not None:
             poses.append(_air_path(prev_end, touch[0], cfg.air_frames, renderer.centre, far))
             pressed.append(np.zeros(cfg.air_frames, bool))
@@ -301,7 +353,8 @@ def scan_motion(renderer: GelRenderer, n_frames: int = 3000, seed: int = 0, conf
         pressed.append(ramp >= 1)
         prev_end = touch[-1]
         total = sum(len(p) for p in poses)
-    return Motion(np.concatenate(poses)[:n_frames], np.concatenate(pressed)[:n_frames], kind)
+        n_paths += 1
+    return Motion(np.concatenate(poses)[:n_frames], np.concatenate(pressed)[:n_frames], kind, n_paths, n_replanned)
 
 
 def _nearest_neighbour_tour(points: np.ndarray) -> np.ndarray:

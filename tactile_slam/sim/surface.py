@@ -59,7 +59,8 @@ class SurfaceGuide:
 
     The smoothed normals come from a vertex-clustered copy of the mesh (cells of
     ``smoothing_m``), interpolated barycentrically, so texture below that scale does
-    not tilt the sensor.
+    not tilt the sensor. Coarser fields (``scale`` > 1: cells of ``scale * smoothing_m``)
+    are built on first use, for surfaces whose relief turns the finest field too fast.
 
     Args:
         mesh: object mesh in metres with outward winding.
@@ -67,27 +68,61 @@ class SurfaceGuide:
     """
 
     def __init__(self, mesh: o3d.geometry.TriangleMesh, smoothing_m: float = 8e-4):
+        self.mesh = mesh
+        self.smoothing_m = smoothing_m
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-        coarse = mesh.simplify_vertex_clustering(smoothing_m)
-        coarse.remove_degenerate_triangles()
-        coarse.compute_vertex_normals()
-        self.coarse_scene = o3d.t.geometry.RaycastingScene()
-        self.coarse_scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(coarse))
-        self.coarse_tri = np.asarray(coarse.triangles)
-        self.coarse_normals = np.asarray(coarse.vertex_normals)
+        self._fields: dict[float, tuple] = {}
+        self._field(1.0)
 
-    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Closest surface points ``(N, 3)`` and smoothed outward normals ``(N, 3)``."""
+    def _field(self, scale: float) -> tuple:
+        """The normal field at ``scale``: (raycasting scene, triangles, vertex normals)."""
+        if scale not in self._fields:
+            coarse = self.mesh.simplify_vertex_clustering(self.smoothing_m * scale)
+            coarse.remove_degenerate_triangles()
+            coarse.compute_vertex_normals()
+            scene = o3d.t.geometry.RaycastingScene()
+            scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(coarse))
+            self._fields[scale] = scene, np.asarray(coarse.triangles), np.asarray(coarse.vertex_normals)
+        return self._fields[scale]
+
+    def project(self, points: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """Closest surface points ``(N, 3)`` and smoothed outward normals ``(N, 3)`` (the
+        field at ``scale`` times the smoothing)."""
         q = o3d.core.Tensor(np.asarray(points, dtype=np.float32).reshape(-1, 3))
         closest = self.scene.compute_closest_points(q)["points"].numpy().astype(np.float64)
-        res = self.coarse_scene.compute_closest_points(o3d.core.Tensor(closest.astype(np.float32)))
+        coarse_scene, coarse_tri, coarse_normals = self._field(scale)
+        res = coarse_scene.compute_closest_points(o3d.core.Tensor(closest.astype(np.float32)))
         ids = res["primitive_ids"].numpy().astype(np.int64)
         uv = res["primitive_uvs"].numpy().astype(np.float64)
-        vn = self.coarse_normals[self.coarse_tri[ids]]  # (N, 3 vertices, 3)
+        vn = coarse_normals[coarse_tri[ids]]  # (N, 3 vertices, 3)
         w = np.stack([1 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], -1)
         n = np.einsum("nk,nkd->nd", w, vn)
         norm = np.linalg.norm(n, axis=1, keepdims=True)
         fine = res["primitive_normals"].numpy().astype(np.float64)  # coarse face normal as fallback
         n = np.where(norm > 1e-3, n / np.maximum(norm, 1e-12), fine)
         return closest, n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def walk(self, targets: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+        """Follow a path of ``targets`` ``(T, 3)`` along the surface instead of projecting
+        each one: the first is projected, then every target's step is laid into the tangent
+        plane at the current point (its length kept) and the moved point is projected. A
+        point never leaves its neighbourhood, so the path cannot jump across a concavity
+        to another sheet the way closest points do near the medial axis.
+
+        Returns:
+            ``(points (T, 3), normals (T, 3))`` as :meth:`project` (normals at ``scale``).
+        """
+        targets = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
+        points, normals = np.empty_like(targets), np.empty_like(targets)
+        p, n = self.project(targets[:1], scale)
+        points[0], normals[0] = p[0], n[0]
+        for i in range(1, len(targets)):
+            step = targets[i] - targets[i - 1]
+            along = step - np.dot(step, normals[i - 1]) * normals[i - 1]
+            size = np.linalg.norm(along)
+            if size > 1e-12:
+                step = along * (np.linalg.norm(step) / size)
+            p, n = self.project(points[i - 1:i] + step, scale)
+            points[i], normals[i] = p[0], n[0]
+        return points, normals

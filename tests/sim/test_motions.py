@@ -1,9 +1,14 @@
 import numpy as np
 import pytest
 
-from tactile_slam.sim.motions import MotionConfig, MotionError, lift, make_motion, tangent_basis, transported_x
+import open3d as o3d
+
+from tactile_slam.sim.heldout import make_heldout
+from tactile_slam.sim.motions import (MotionConfig, MotionError, lift, make_motion, tangent_basis, too_fast,
+                                     transported_x)
 from tactile_slam.sim.objects import make_object
 from tactile_slam.sim.renderer import GelRenderer
+from tactile_slam.sim.surface import SurfaceGuide
 
 
 @pytest.fixture(scope="module")
@@ -119,3 +124,71 @@ def test_errors(renderer):
         make_motion(renderer, "tracking", n_frames=5)
     with pytest.raises(MotionError, match="at least"):
         make_motion(renderer, "scan", n_frames=20)
+
+
+PLAIN = MotionConfig(guide_scales=(), slow_downs=())  # every path as planned, however fast
+
+
+def _groove(slope: float = 1.0, half_mm: float = 8.0, step_mm: float = 0.1) -> o3d.geometry.TriangleMesh:
+    """A V groove ``z = slope |x|`` (metres), 2 * half_mm square, triangulated on a grid."""
+    g = np.arange(-half_mm, half_mm + 1e-9, step_mm) * 1e-3
+    x, y = np.meshgrid(g, g, indexing="ij")
+    v = np.stack([x, y, slope * np.abs(x)], -1).reshape(-1, 3)
+    n = len(g)
+    i, j = np.meshgrid(np.arange(n - 1), np.arange(n - 1), indexing="ij")
+    a, b, c, d = i * n + j, (i + 1) * n + j, (i + 1) * n + j + 1, i * n + j + 1
+    tri = np.concatenate([np.stack([a, c, b], -1).reshape(-1, 3), np.stack([a, d, c], -1).reshape(-1, 3)])
+    return o3d.geometry.TriangleMesh(o3d.utility.Vector3dVector(v), o3d.utility.Vector3iVector(tri))
+
+
+def test_walk_crosses_a_groove_without_jumping():
+    """Targets 2 mm above a 90 deg groove, moving across it in 0.1 mm steps: the closest
+    points jump from one wall to the other at the medial plane (by 2 mm: the feet at
+    x = -1 and +1 mm, computed by hand), while the walk stays on the surface and moves
+    about one step per target."""
+    guide = SurfaceGuide(_groove(), smoothing_m=2e-4)
+    xs = np.arange(-3.0, 3.0 + 1e-9, 0.1) * 1e-3
+    targets = np.stack([xs, np.zeros_like(xs), np.full_like(xs, 2e-3)], -1)
+    proj, _ = guide.project(targets)
+    walk, normals = guide.walk(targets)
+    jump = np.linalg.norm(np.diff(proj, axis=0), axis=1).max()
+    assert jump == pytest.approx(2e-3, rel=0.05)  # (-1, 1) -> (1, 1) mm in (x, z)
+    steps = np.linalg.norm(np.diff(walk, axis=0), axis=1)
+    assert steps.max() < 0.15e-3 and steps.min() > 0.05e-3
+    assert np.allclose(walk[:, 2], np.abs(walk[:, 0]), atol=1e-6)  # on the surface
+    assert walk[0, 0] < -1e-3 and walk[-1, 0] > 1e-3  # it crossed
+    assert np.allclose(np.linalg.norm(normals, axis=1), 1.0)
+
+
+def test_too_fast_counts_only_touching_steps():
+    poses = np.tile(np.eye(4), (4, 1, 1))
+    poses[1, 0, 3] = 2e-3  # 2 mm in one frame, then back
+    touching = np.array([True, True, False, False])
+    assert too_fast(poses, touching, MotionConfig()).tolist() == [True, False, False]
+    assert not too_fast(poses, np.array([True, False, True, True]), MotionConfig()).any()
+
+
+@pytest.mark.parametrize("name", ["seed", "rock"])
+def test_paths_faster_than_a_hand_are_replanned(name):
+    """As planned, a scan round the small seed (tight curvature) and a slide over the rock
+    (deep relief, concavities) turn or move the pressed sensor faster than a hand in some
+    frames; re-planned, no step does, and the motion says how many paths it re-planned."""
+    if name == "seed":
+        renderer, kind, n = GelRenderer(make_object("seed", resolution_mm=0.1)), "scan", 400
+    else:
+        renderer, kind, n = GelRenderer(make_heldout("rock", 0.25, 0)), "tracking", 200
+    plain, fixed = make_motion(renderer, kind, n, 0, PLAIN), make_motion(renderer, kind, n, 0)
+    assert too_fast(plain.object_T_sensor, plain.pressed, MotionConfig()).sum() > 0
+    assert too_fast(fixed.object_T_sensor, fixed.pressed, MotionConfig()).sum() == 0
+    assert 0 < fixed.replanned <= fixed.paths and plain.replanned == 0
+    assert np.array_equal(plain.pressed, fixed.pressed)
+    assert _is_rigid(fixed.object_T_sensor)
+
+
+def test_plausible_paths_stay_as_planned():
+    """The lime's tracking path never moves faster than a hand, so re-planning leaves
+    every pose bit for bit as planned."""
+    renderer = GelRenderer(make_object("lime"))
+    plain, fixed = make_motion(renderer, "tracking", 150, 1, PLAIN), make_motion(renderer, "tracking", 150, 1)
+    assert np.array_equal(plain.object_T_sensor, fixed.object_T_sensor)
+    assert fixed.replanned == 0 and fixed.paths == 1
