@@ -95,6 +95,32 @@ class MotionConfig:
     guide_scales: tuple[float, ...] = (2.0, 4.0, 8.0)
     slow_downs: tuple[float, ...] = (0.5, 0.25)
 
+    def __post_init__(self) -> None:
+        def finite(name: str, values: tuple[float, ...], ok, rule: str) -> None:
+            bad = [v for v in values if not (np.isfinite(v) and ok(v))]
+            if bad:
+                raise MotionError(f"MotionConfig.{name} must be {rule}, got {getattr(self, name)!r}")
+
+        for name in ("lift_mm", "max_step_deg", "max_step_mm"):
+            finite(name, (getattr(self, name),), lambda v: v > 0, "a finite number > 0")
+        for name in ("twist_deg", "roll_deg", "path_mm", "cycles"):
+            finite(name, (getattr(self, name),), lambda v: v >= 0, "a finite number >= 0")
+        finite("depth_mm", self.depth_mm, lambda v: v > 0, "two finite depths > 0 (lo, hi)")
+        if len(self.depth_mm) != 2 or self.depth_mm[0] > self.depth_mm[1]:
+            raise MotionError(f"MotionConfig.depth_mm must be (lo, hi) with lo <= hi, got {self.depth_mm!r}")
+        if len(self.touch_frames) != 2 or not 1 <= self.touch_frames[0] <= self.touch_frames[1]:
+            raise MotionError(f"MotionConfig.touch_frames must be (lo, hi) with 1 <= lo <= hi, got {self.touch_frames!r}")
+        for name in ("lead_in", "approach_frames", "air_frames", "loss_length"):
+            if getattr(self, name) < 0:
+                raise MotionError(f"MotionConfig.{name} must be >= 0 frames, got {getattr(self, name)!r}")
+        if self.press_stride < 1:
+            raise MotionError(f"MotionConfig.press_stride must be >= 1 pixel, got {self.press_stride!r}")
+        if not self.loss_period > self.loss_length:
+            raise MotionError(f"MotionConfig.loss_period ({self.loss_period}) must exceed loss_length "
+                              f"({self.loss_length}), or no frame of a contact-loss episode touches")
+        finite("guide_scales", tuple(self.guide_scales), lambda v: v > 0, "finite smoothing multiples > 0")
+        finite("slow_downs", tuple(self.slow_downs), lambda v: 0 < v <= 1, "finite speeds in (0, 1]")
+
 
 @dataclass
 class Motion:

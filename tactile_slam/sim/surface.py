@@ -54,6 +54,19 @@ def farthest_points(points: np.ndarray, k: int, start: int = 0) -> np.ndarray:
     return chosen
 
 
+def _as_points(points: np.ndarray) -> np.ndarray:
+    """``points`` as a float64 ``(N, 3)`` array; a clear error for another shape or a
+    non-finite coordinate."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim == 1 and points.shape == (3,):
+        points = points[None]
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"expected points of shape (N, 3), got {points.shape}")
+    if not np.isfinite(points).all():
+        raise ValueError("points contain NaN or Inf")
+    return points
+
+
 class SurfaceGuide:
     """Closest points on a mesh and outward normals smoothed over ``smoothing_m``.
 
@@ -77,9 +90,14 @@ class SurfaceGuide:
 
     def _field(self, scale: float) -> tuple:
         """The normal field at ``scale``: (raycasting scene, triangles, vertex normals)."""
+        if not (np.isfinite(scale) and scale > 0):
+            raise ValueError(f"a normal-field scale must be a finite number > 0, got {scale!r}")
         if scale not in self._fields:
             coarse = self.mesh.simplify_vertex_clustering(self.smoothing_m * scale)
             coarse.remove_degenerate_triangles()
+            if len(coarse.triangles) == 0:
+                raise ValueError(f"the normal field at scale {scale} ({self.smoothing_m * scale * 1e3:.3g} mm cells) "
+                                 "leaves no triangles: the scale is too coarse for this object")
             coarse.compute_vertex_normals()
             scene = o3d.t.geometry.RaycastingScene()
             scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(coarse))
@@ -89,7 +107,7 @@ class SurfaceGuide:
     def project(self, points: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Closest surface points ``(N, 3)`` and smoothed outward normals ``(N, 3)`` (the
         field at ``scale`` times the smoothing)."""
-        q = o3d.core.Tensor(np.asarray(points, dtype=np.float32).reshape(-1, 3))
+        q = o3d.core.Tensor(_as_points(points).astype(np.float32))
         closest = self.scene.compute_closest_points(q)["points"].numpy().astype(np.float64)
         coarse_scene, coarse_tri, coarse_normals = self._field(scale)
         res = coarse_scene.compute_closest_points(o3d.core.Tensor(closest.astype(np.float32)))
@@ -113,8 +131,10 @@ class SurfaceGuide:
         Returns:
             ``(points (T, 3), normals (T, 3))`` as :meth:`project` (normals at ``scale``).
         """
-        targets = np.asarray(targets, dtype=np.float64).reshape(-1, 3)
+        targets = _as_points(targets)
         points, normals = np.empty_like(targets), np.empty_like(targets)
+        if len(targets) == 0:
+            return points, normals
         p, n = self.project(targets[:1], scale)
         points[0], normals[0] = p[0], n[0]
         for i in range(1, len(targets)):

@@ -126,6 +126,54 @@ def test_errors(renderer):
         make_motion(renderer, "scan", n_frames=20)
 
 
+@pytest.mark.parametrize("field, value, message", [
+    ("max_step_deg", 0.0, "max_step_deg must be a finite number > 0"),
+    ("max_step_deg", float("nan"), "max_step_deg must be a finite number > 0"),
+    ("max_step_mm", -1.0, "max_step_mm must be a finite number > 0"),
+    ("max_step_mm", float("inf"), "max_step_mm must be a finite number > 0"),
+    ("lift_mm", 0.0, "lift_mm"),
+    ("twist_deg", float("nan"), "twist_deg must be a finite number >= 0"),
+    ("depth_mm", (1.5, 0.3), "lo <= hi"),
+    ("depth_mm", (0.0, 1.0), "depths > 0"),
+    ("touch_frames", (0, 10), "1 <= lo <= hi"),
+    ("lead_in", -1, "lead_in must be >= 0"),
+    ("press_stride", 0, "press_stride"),
+    ("loss_length", 100, "must exceed loss_length"),
+    ("guide_scales", (2.0, 0.0), "guide_scales must be finite smoothing multiples > 0"),
+    ("guide_scales", (float("nan"),), "guide_scales"),
+    ("slow_downs", (0.5, 1.5), r"slow_downs must be finite speeds in \(0, 1\]"),
+    ("slow_downs", (0.0,), "slow_downs"),
+])
+def test_config_rejects_bad_values(field, value, message):
+    with pytest.raises(MotionError, match=message):
+        MotionConfig(**{field: value})
+
+
+def test_config_accepts_the_edges():
+    """Re-planning off (empty tuples), full speed as a 'slow-down' and zero amplitudes are
+    valid; so are the defaults."""
+    MotionConfig()
+    MotionConfig(guide_scales=(), slow_downs=(1.0,), twist_deg=0.0, roll_deg=0.0, approach_frames=0)
+
+
+def test_surface_guide_rejects_bad_points_and_scales():
+    guide = SurfaceGuide(_groove(half_mm=2.0), smoothing_m=2e-4)
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        guide.project(np.zeros((4, 2)))
+    with pytest.raises(ValueError, match=r"shape \(N, 3\)"):
+        guide.walk(np.zeros((5, 6)))
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        guide.walk(np.array([[0.0, 0.0, 1e-3], [np.nan, 0.0, 1e-3]]))
+    with pytest.raises(ValueError, match="finite number > 0"):
+        guide.project(np.zeros((1, 3)), scale=0.0)
+    with pytest.raises(ValueError, match="too coarse"):
+        guide.project(np.zeros((1, 3)), scale=1e4)  # 2 m cells on a 4 mm patch
+    points, normals = guide.walk(np.zeros((0, 3)))
+    assert points.shape == normals.shape == (0, 3)
+    one, _ = guide.project(np.array([0.5e-3, 0.0, 2e-3]))  # a single point (3,) is one row
+    assert one.shape == (1, 3) and one[0, 2] == pytest.approx(abs(one[0, 0]), abs=1e-6)
+
+
 PLAIN = MotionConfig(guide_scales=(), slow_downs=())  # every path as planned, however fast
 
 
