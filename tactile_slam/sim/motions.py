@@ -226,7 +226,8 @@ def _path_poses(renderer, guide, t, p0, n0, e1, e2, amp_m, cycles, twist, rolls,
     closest point jumps to another sheet, deep relief turns the normal by tens of degrees
     per frame, a fast slide round a tight curve turns the sensor with it), the path is
     walked along the surface instead (:meth:`SurfaceGuide.walk`) with each coarser normal
-    field of ``cfg.guide_scales`` in turn, then all of it again at each slower speed of
+    field of ``cfg.guide_scales`` in turn (those that resolve the object:
+    :meth:`SurfaceGuide.resolves`), then all of it again at each slower speed of
     ``cfg.slow_downs`` (the same path, covered more slowly), and the first plausible
     candidate is kept (else the one with the fewest too-fast steps). A path that is
     plausible as it is stays exactly as it was."""
@@ -238,6 +239,8 @@ def _path_poses(renderer, guide, t, p0, n0, e1, e2, amp_m, cycles, twist, rolls,
         us = u if speed == 1.0 else np.stack([np.interp(speed * frames, frames, c) for c in u.T], -1)
         targets = p0 + us[:, :1] * e1 + us[:, 1:] * e2
         for scale in (None, *cfg.guide_scales):
+            if scale is not None and not guide.resolves(scale):  # built only when a path needs it
+                continue
             points, normals = guide.project(targets) if scale is None else guide.walk(targets, scale)
             points = gaussian_filter1d(points, 2.0, axis=0, mode="nearest")
             normals = gaussian_filter1d(normals, 2.0, axis=0, mode="nearest")

@@ -85,24 +85,38 @@ class SurfaceGuide:
         self.smoothing_m = smoothing_m
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(mesh))
-        self._fields: dict[float, tuple] = {}
+        self._fields: dict[float, tuple | None] = {}
         self._field(1.0)
 
-    def _field(self, scale: float) -> tuple:
-        """The normal field at ``scale``: (raycasting scene, triangles, vertex normals)."""
+    def _built(self, scale: float) -> tuple | None:
+        """The normal field at ``scale`` (raycasting scene, triangles, vertex normals),
+        built on first use; ``None`` where its cells leave the object no triangles."""
         if not (np.isfinite(scale) and scale > 0):
             raise ValueError(f"a normal-field scale must be a finite number > 0, got {scale!r}")
         if scale not in self._fields:
             coarse = self.mesh.simplify_vertex_clustering(self.smoothing_m * scale)
             coarse.remove_degenerate_triangles()
-            if len(coarse.triangles) == 0:
-                raise ValueError(f"the normal field at scale {scale} ({self.smoothing_m * scale * 1e3:.3g} mm cells) "
-                                 "leaves no triangles: the scale is too coarse for this object")
-            coarse.compute_vertex_normals()
-            scene = o3d.t.geometry.RaycastingScene()
-            scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(coarse))
-            self._fields[scale] = scene, np.asarray(coarse.triangles), np.asarray(coarse.vertex_normals)
+            field = None
+            if len(coarse.triangles):
+                coarse.compute_vertex_normals()
+                scene = o3d.t.geometry.RaycastingScene()
+                scene.add_triangles(o3d.t.geometry.TriangleMesh.from_legacy(coarse))
+                field = scene, np.asarray(coarse.triangles), np.asarray(coarse.vertex_normals)
+            self._fields[scale] = field
         return self._fields[scale]
+
+    def _field(self, scale: float) -> tuple:
+        """The normal field at ``scale``; a clear error where it does not exist."""
+        field = self._built(scale)
+        if field is None:
+            raise ValueError(f"the normal field at scale {scale} ({self.smoothing_m * scale * 1e3:.3g} mm cells) "
+                             "leaves no triangles: the scale is too coarse for this object")
+        return field
+
+    def resolves(self, scale: float) -> bool:
+        """Whether a normal field at ``scale`` exists: its cells are small enough to leave
+        the object some triangles (a field coarser than the object has none)."""
+        return self._built(scale) is not None
 
     def project(self, points: np.ndarray, scale: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
         """Closest surface points ``(N, 3)`` and smoothed outward normals ``(N, 3)`` (the

@@ -174,6 +174,22 @@ def test_surface_guide_rejects_bad_points_and_scales():
     assert one.shape == (1, 3) and one[0, 2] == pytest.approx(abs(one[0, 0]), abs=1e-6)
 
 
+def test_small_objects_skip_fields_coarser_than_themselves():
+    """On a 2 mm ball the 8x normal field (6.4 mm cells) leaves no triangles. A path that
+    must try every candidate (a limit no path meets) skips that field and keeps the
+    plausiblest of the rest instead of failing; the guide says which fields exist."""
+    ball = o3d.geometry.TriangleMesh.create_sphere(1e-3, 60)
+    ball.compute_vertex_normals()
+    guide = SurfaceGuide(ball)
+    assert guide.resolves(2.0) and guide.resolves(4.0) and not guide.resolves(8.0)
+    renderer, strict = GelRenderer(ball), MotionConfig(max_step_deg=1e-3)
+    m = make_motion(renderer, "tracking", 60, 0, strict)
+    plain = make_motion(renderer, "tracking", 60, 0, MotionConfig(max_step_deg=1e-3, guide_scales=(), slow_downs=()))
+    assert m.paths == 1 and _is_rigid(m.object_T_sensor)
+    fast = too_fast(m.object_T_sensor, m.pressed, strict).sum()
+    assert 0 < fast <= too_fast(plain.object_T_sensor, plain.pressed, strict).sum()  # none plausible; the fewest kept
+
+
 PLAIN = MotionConfig(guide_scales=(), slow_downs=())  # every path as planned, however fast
 
 
