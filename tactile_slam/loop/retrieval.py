@@ -127,6 +127,10 @@ class IndexSettings:
             removed from it exceed this fraction of it.
         trees: kd-trees in the FLANN forest.
         checks: leaves FLANN visits per query (accuracy vs time).
+        seed: seed of the forest's random splits. FLANN draws them from OpenCV's RNG of
+            the calling thread, whose state depends on everything the process did
+            before; seeded at each build, a level depends only on its descriptors, so
+            the same scan gives the same loops whether it runs alone or after others.
     """
 
     neighbours: int = 5
@@ -135,6 +139,7 @@ class IndexSettings:
     rebuild_fraction: float = 0.25
     trees: int = 4
     checks: int = 64
+    seed: int = 0
 
 
 def _exact_knn(query: np.ndarray, pool: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -257,6 +262,7 @@ class DescriptorIndex:
     def _build(self, ids) -> _Level:
         ids = sorted(ids)
         desc, owner = self._stack(ids)
+        cv2.setRNGSeed(self.settings.seed)  # the kd-trees' splits (see IndexSettings.seed)
         return _Level(set(ids), owner, cv2.flann_Index(desc, dict(algorithm=1, trees=self.settings.trees)))
 
     def _tail_pool(self) -> tuple[np.ndarray, np.ndarray]:

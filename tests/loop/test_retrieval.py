@@ -35,6 +35,32 @@ def test_index_finds_the_revisited_keyframe(exact_max):
     assert 17 not in index.query(query, [i for i in range(60) if i != 17], 3)
 
 
+def test_kdtree_levels_do_not_depend_on_the_process_history():
+    """FLANN's random splits come from OpenCV's thread RNG. Two indexes of the same
+    descriptors, built after different uses of that RNG (another index, random draws),
+    return the same approximate neighbours; before the seeded build they differed
+    (the same scan gave 185 or 186 loops depending on the scans run before it)."""
+    import cv2
+
+    blocks = _keyframe_descriptors(80, 60, seed=6)  # 4,800 descriptors: kd-tree levels
+    q = np.random.default_rng(7).random((40, 128), np.float32) * 100
+
+    def built(warm_up: int) -> np.ndarray:
+        cv2.randu(np.zeros((warm_up, 8), np.float32), 0, 1)  # move the thread RNG on
+        index = DescriptorIndex(IndexSettings(exact_max=500, checks=8))
+        for i, d in enumerate(blocks):
+            index.add(i, d)
+        assert len(index.level_sizes) > 1
+        return index.neighbours(q)
+
+    first = built(1)
+    assert np.array_equal(first, built(1000)) and np.array_equal(first, built(7))
+    # the approximate search is what makes the seed matter: it misses exact neighbours
+    pool, owner = np.concatenate(blocks), np.repeat(np.arange(80), 60)
+    d2 = ((q[:, None].astype(np.float64) - pool[None]) ** 2).sum(-1)
+    assert (first != owner[np.argsort(d2, axis=1)[:, :first.shape[1]]]).any()
+
+
 def test_exact_neighbours_match_brute_force():
     blocks = _keyframe_descriptors(8, 10, seed=2)
     index = DescriptorIndex(IndexSettings(neighbours=3))
