@@ -97,8 +97,7 @@ class MotionConfig:
 
     def __post_init__(self) -> None:
         def finite(name: str, values: tuple[float, ...], ok, rule: str) -> None:
-            bad = [v for v in values if not (np.isfinite(v) and ok(v))]
-            if bad:
+            if not all(np.isfinite(v) and ok(v) for v in values):
                 raise MotionError(f"MotionConfig.{name} must be {rule}, got {getattr(self, name)!r}")
 
         for name in ("lift_mm", "max_step_deg", "max_step_mm"):
