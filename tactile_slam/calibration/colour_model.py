@@ -20,6 +20,7 @@ from tactile_slam.calibration.catalog import CalibrationDataError, CalibrationSe
 from tactile_slam.calibration.dataset import sphere_targets
 from tactile_slam.calibration.labels import PressLabel, rim_margin_px
 from tactile_slam.calibration.model import check_chunk_pixels, mlp_rows, read_weights
+from tactile_slam.geometry.frame import as_tensor
 
 COLOUR_FORMAT_TAG = "tactile-slam-colour-model"
 
@@ -90,9 +91,10 @@ class ColourModel:
 
     @torch.no_grad()
     def __call__(self, gradients: torch.Tensor) -> torch.Tensor:
-        """``(B, H, W, 2)`` float slopes ``(dh/dx, dh/dy)`` -> ``(B, H, W, 3)`` float32 BGR
-        difference to add to the background (zero slope gives about zero)."""
-        feats = self.features(gradients.to(self.device))
+        """``(B, H, W, 2)`` float slopes ``(dh/dx, dh/dy)`` (a tensor or a numpy array) ->
+        ``(B, H, W, 3)`` float32 BGR difference to add to the background (zero slope gives
+        about zero)."""
+        feats = self.features(as_tensor(gradients, "gradients").to(self.device))
         if not torch.isfinite(feats).all():
             raise ValueError("gradients contain NaN")
         rows = self.chunk_pixels if self.device.type == "cpu" else 0

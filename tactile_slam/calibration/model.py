@@ -14,10 +14,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch import nn
 
+from tactile_slam.config import ContactConfig, SensorConfig
 from tactile_slam.geometry.contact import colour_distance
+from tactile_slam.geometry.frame import as_tensor
 from tactile_slam.geometry.morphology import dilate
 
 FORMAT_TAG = "tactile-slam-calibration"
@@ -174,6 +177,27 @@ def load_model(path: str | Path, device: torch.device | str = "cpu") -> tuple[Gr
     return model.to(device).eval(), meta
 
 
+class ModelSensorWarning(UserWarning):
+    """A calibration model was trained on another sensor than the one configured."""
+
+
+def model_sensor_mismatch(meta: dict[str, Any], sensor: SensorConfig) -> str | None:
+    """Why a model whose ``meta`` (from :func:`load_model`) is unfit for ``sensor``, or
+    ``None``: another field of view (image size times ``mm_per_px`` differing by more
+    than 1 % on either axis). The model reads positions as fractions of the image, so
+    the same gel at another resolution is fine; another field of view puts every learnt
+    position elsewhere on the gel. Sensor names are not compared (configs name the same
+    sensor differently). SDK files carry no ``meta`` and are not checked."""
+    size, mm = meta.get("image_size"), meta.get("mm_per_px")
+    if size is not None and mm is not None:
+        trained = np.asarray(size, dtype=float) * float(mm)
+        now = np.asarray(sensor.shape, dtype=float) * sensor.mm_per_px
+        if (np.abs(trained / now - 1.0) > 0.01).any():
+            return (f"the model was trained on a {trained[1]:.2f} x {trained[0]:.2f} mm field of view, "
+                    f"the sensor has {now[1]:.2f} x {now[0]:.2f} mm (image size times mm_per_px)")
+    return None
+
+
 class GradientDecoder:
     """Colour image -> surface gradients with the background's gradients subtracted.
 
@@ -183,9 +207,10 @@ class GradientDecoder:
 
     Args:
         model: the calibration MLP.
-        background: ``(H, W, 3)`` float BGR background (mean of contact-free frames).
-        skip_color_dist: colour distance under which a pixel is skipped; ``0``
-            evaluates every pixel.
+        background: ``(H, W, 3)`` float BGR background (mean of contact-free frames), a
+            tensor or a numpy array (e.g. a source's ``background``).
+        skip_color_dist: colour distance under which a pixel is skipped (default
+            ``contact.mlp_skip_color_dist``, what the pipelines use); ``0`` evaluates every pixel.
         max_angle: angles are clamped to ``[-max_angle, max_angle]`` rad before tan.
         chunk_pixels: on the CPU the model runs over at most this many pixels at a time,
             so that its layer outputs stay in cache (one product over the changed pixels
@@ -201,10 +226,11 @@ class GradientDecoder:
         self,
         model: GradientMLP,
         background: torch.Tensor,
-        skip_color_dist: float = 4.0,
+        skip_color_dist: float = ContactConfig.mlp_skip_color_dist,
         max_angle: float = 1.4,
         chunk_pixels: int = 4096,
     ):
+        background = as_tensor(background, "background")
         if background.ndim != 3 or background.shape[-1] != 3:
             raise ValueError(f"background must be (H, W, 3), got {tuple(background.shape)}")
         self.model = model
@@ -226,11 +252,13 @@ class GradientDecoder:
 
     @torch.no_grad()
     def __call__(self, bgr: torch.Tensor, changed: torch.Tensor | None = None) -> torch.Tensor:
-        """``(B, H, W, 3)`` BGR -> ``(B, H, W, 2)`` gradients ``(dh/dx, dh/dy)``.
+        """``(B, H, W, 3)`` BGR (a tensor or a numpy array) -> ``(B, H, W, 2)`` gradients
+        ``(dh/dx, dh/dy)``.
 
         ``changed`` (``(B, H, W)`` bool) restricts evaluation to those pixels; by
         default it is derived from the colour distance to the background.
         """
+        bgr = as_tensor(bgr, "image batch")
         if bgr.ndim != 4 or bgr.shape[1:] != self.background.shape:
             raise ValueError(
                 f"image batch must be (B, {', '.join(map(str, self.background.shape))}), "

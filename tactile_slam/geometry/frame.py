@@ -7,16 +7,19 @@ A :class:`Frame` always carries a leading batch dimension ``B`` (a single frame 
 from __future__ import annotations
 
 from dataclasses import dataclass, fields, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 
-from tactile_slam.calibration.model import GradientDecoder
 from tactile_slam.config import Config
 from tactile_slam.geometry.contact import colour_distance, colour_mask, contact_mask, gel_visible, zero_level
 from tactile_slam.geometry.curvature import curvature, normals_from_gradients
 from tactile_slam.geometry.morphology import dilate, mask_bounds, window_around
 from tactile_slam.geometry.poisson import integrate_exact, integrate_legacy
+
+if TYPE_CHECKING:  # the decoder's module reads its inputs with as_tensor below
+    from tactile_slam.calibration.model import GradientDecoder
 
 
 class InputError(ValueError):
@@ -427,19 +430,27 @@ class FrameBuilder:
         decoder: colour-to-gradient decoder (with its background); required only for
             :meth:`from_bgr`. Gradient-level input never touches the model.
         integrator: ``"exact"`` (default) or ``"legacy"`` (public SDK, for comparison).
+        device: where gradient-level frames are computed (default CPU). Image-level frames
+            are computed on the decoder's device; a ``device`` that differs from it is refused.
     """
 
-    def __init__(self, config: Config, decoder: GradientDecoder | None = None, integrator: str = "exact"):
+    def __init__(self, config: Config, decoder: GradientDecoder | None = None, integrator: str = "exact",
+                 device: str | torch.device | None = None):
         if integrator not in ("exact", "legacy"):
             raise ValueError(f"integrator must be 'exact' or 'legacy', got {integrator!r}")
+        if device is not None and decoder is not None and torch.device(device) != decoder.device:
+            raise ValueError(f"FrameBuilder device {torch.device(device)} differs from its decoder's "
+                             f"{decoder.device}: move the model (load_model(path, device))")
         self.depth_test = config.depth_test  # (threshold px, fraction, floor px); checked here, not at the first frame
         self.config = config
         self.decoder = decoder
         self.integrate = integrate_exact if integrator == "exact" else integrate_legacy
+        self._device = torch.device(device) if device is not None else torch.device("cpu")
 
     @property
     def device(self) -> torch.device:
-        return self.decoder.device if self.decoder is not None else torch.device("cpu")
+        """Where frames are computed: the decoder's device, else the one given (CPU by default)."""
+        return self.decoder.device if self.decoder is not None else self._device
 
     def from_bgr(
         self,

@@ -17,7 +17,7 @@ import torch
 from tqdm import tqdm
 
 from tactile_slam.backend import BackEnd
-from tactile_slam.calibration.model import GradientDecoder, load_model
+from tactile_slam.calibration.model import GradientDecoder, ModelSensorWarning, load_model, model_sensor_mismatch
 from tactile_slam.config import Config, resolve_device
 from tactile_slam.eval.trajectory import write_tum
 from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError
@@ -121,7 +121,7 @@ class OfflinePipeline:
         without a known background, the first ``background_frames`` frames of the
         stream become the background and are not tracked."""
         if first.bgr is None:
-            return FrameBuilder(self.config), first
+            return FrameBuilder(self.config, device=self.options.device), first
         background = getattr(self.source, "background", None)
         rest = first
         if background is None:
@@ -143,7 +143,11 @@ class OfflinePipeline:
             raise InputError(
                 f"no calibration model for sensor {self.config.sensor.name!r}: pass --model or set sensor.model_path"
             )
-        model, _ = load_model(path, self.options.device)
+        model, meta = load_model(path, self.options.device)
+        mismatch = model_sensor_mismatch(meta, self.config.sensor)
+        if mismatch is not None:
+            warnings.warn(f"{path}: {mismatch}; its gradients will be wrong (calibrate this sensor: "
+                          "tactile-slam calibrate)", ModelSensorWarning, stacklevel=2)
         bg = torch.as_tensor(np.asarray(background), dtype=torch.float32)
         decoder = GradientDecoder(model, bg, self.config.contact.mlp_skip_color_dist)
         return FrameBuilder(self.config, decoder), rest

@@ -6,10 +6,12 @@ from tactile_slam.calibration.model import (
     GradientDecoder,
     GradientMLP,
     load_model,
+    model_sensor_mismatch,
     mlp_rows,
     pixel_features,
     save_model,
 )
+from tactile_slam.config import ContactConfig, SensorConfig
 
 
 def test_reference_model_loads(mini_data):
@@ -61,6 +63,21 @@ def test_decoder_background_gives_zero_and_skip_is_consistent(device):
     sparse = GradientDecoder(m, bg, skip_color_dist=8)(img[None])
     torch.testing.assert_close(sparse[0, 5:10, 5:10], full[0, 5:10, 5:10])
     assert (sparse[0, :2] == 0).all()
+
+
+def test_decoder_takes_numpy_like_the_frame_builder():
+    """Backgrounds and images as OpenCV and the sources give them (numpy arrays) decode as
+    tensors do; the default skip is the pipelines' ``contact.mlp_skip_color_dist``."""
+    torch.manual_seed(0)
+    m = GradientMLP()
+    bg = torch.rand(24, 32, 3) * 255
+    img = bg.clone()
+    img[5:10, 5:10] += 40
+    ref = GradientDecoder(m, bg)(img[None])
+    torch.testing.assert_close(GradientDecoder(m, bg.numpy())(img[None].numpy()), ref, rtol=0, atol=0)
+    assert GradientDecoder(m, bg).skip_color_dist == ContactConfig().mlp_skip_color_dist
+    with pytest.raises(ValueError, match="background must be a torch tensor or a numpy array"):
+        GradientDecoder(m, bg.tolist())
 
 
 def test_decoder_bad_shape():
@@ -123,3 +140,15 @@ def test_mlp_rows_bad_input():
     for bad in (torch.randn(10, 4), torch.randn(10), torch.randn(2, 10, 5)):
         with pytest.raises(ValueError, match="mlp_rows"):
             mlp_rows(m.layers, bad, 4)
+
+
+def test_model_of_another_field_of_view_is_named():
+    """The same gel at another resolution is fine (positions are fractions of the image);
+    another field of view, or a crop, is not; SDK files (no meta) are not checked."""
+    mini = SensorConfig()
+    assert model_sensor_mismatch({"image_size": [240, 320], "mm_per_px": 0.0634}, mini) is None
+    assert model_sensor_mismatch({"image_size": [480, 640], "mm_per_px": 0.0317}, mini) is None
+    assert model_sensor_mismatch({}, mini) is None
+    why = model_sensor_mismatch({"image_size": [240, 320], "mm_per_px": 0.05}, mini)
+    assert why is not None and "16.00 x 12.00 mm field of view" in why and "20.29 x 15.22" in why
+    assert model_sensor_mismatch({"image_size": [215, 290], "mm_per_px": 0.0634}, mini) is not None

@@ -6,7 +6,7 @@ import pytest
 from scipy import ndimage
 import torch
 
-from tactile_slam.calibration.model import GradientDecoder, load_model
+from tactile_slam.calibration.model import GradientDecoder, GradientMLP, load_model
 from tactile_slam.config import Config
 from tactile_slam.geometry.frame import (Frame, FrameBuilder, InputError, crop_to_contact, full_batch, window_batch,
                                          contact_bounds, height_and_contact_in, window_around)
@@ -36,6 +36,22 @@ class TestFromGradients:
         iou = (c & true).sum() / (c | true).sum()
         assert iou > 0.95
         assert bool(f.in_contact[0])
+
+    def test_frames_are_computed_on_the_builders_device(self, device):
+        """Gradient-level frames follow the builder's ``device`` whatever the input's (the
+        pipeline's ``--device`` for gradient sequences), with the same maps as on the CPU."""
+        fb = FrameBuilder(Config(), device=device)
+        assert fb.device == device
+        f, _ = _ball_frame(fb)
+        assert f.normals.device.type == f.height.device.type == f.contact.device.type == device.type
+        cpu, _ = _ball_frame(FrameBuilder(Config()))
+        torch.testing.assert_close(f.height.cpu(), cpu.height, rtol=0, atol=1e-4)
+        assert torch.equal(f.contact.cpu(), cpu.contact)
+
+    def test_a_device_other_than_the_decoders_is_refused(self):
+        decoder = GradientDecoder(GradientMLP(), torch.zeros(240, 320, 3))  # on the CPU
+        with pytest.raises(ValueError, match="differs from its decoder"):
+            FrameBuilder(Config(), decoder, device="meta")
 
     def test_no_contact_on_flat_gel(self):
         fb = FrameBuilder(Config())

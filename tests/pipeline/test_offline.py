@@ -166,6 +166,21 @@ def test_no_contact_is_an_error_and_writes_nothing(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_a_model_of_another_field_of_view_is_warned_about(tmp_path):
+    """An image recording decoded with a model trained on a gel of another size warns,
+    naming the model file, before anything is tracked."""
+    from tactile_slam.calibration.model import GradientMLP, ModelSensorWarning, save_model
+    from tactile_slam.io.video import VideoSource, write_video
+
+    save_model(tmp_path / "other.pt", GradientMLP(), {"image_size": [240, 320], "mm_per_px": 0.05})
+    grey = np.full((12, 240, 320, 3), 128, np.uint8)  # no contact: the run stops after the warning
+    write_video(tmp_path / "flat.avi", grey, 25.0)
+    options = RunOptions(progress=False, model=str(tmp_path / "other.pt"))
+    with pytest.warns(ModelSensorWarning, match="other.pt: the model was trained on a 16.00 x 12.00 mm"):
+        with pytest.raises(InputError):
+            OfflinePipeline(VideoSource(tmp_path / "flat.avi"), Config(), tmp_path / "out", options).run()
+
+
 def test_cli_bad_inputs(tmp_path, capsys):
     assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o1")]) == 2
     assert "not found" in capsys.readouterr().err
@@ -251,6 +266,16 @@ def test_device_argument():
     for bad in ("", "gpu", "mps", "cuda:99"):
         with pytest.raises(argparse.ArgumentTypeError):
             device_arg(bad)
+
+
+def test_gradient_input_runs_on_the_requested_device(tracking_episode, tmp_path, device):
+    """Gradient sequences are computed where ``RunOptions.device`` says (they never pass
+    through a decoder, whose device the image level follows), and stats say so."""
+    src = GradientSequence(tracking_episode / "gt_gradients.npz", fps=25)
+    res = OfflinePipeline(src, Config(), tmp_path, RunOptions(method="nf-kf", progress=False, mesh=False,
+                                                              device=str(device))).run()
+    assert res.stats["device"] == device.type and res.keyframes
+    assert all(kf.maps.device.type == device.type for kf in res.keyframes)
 
 
 def test_nf_baseline_is_the_public_trackers_normalflow(tmp_path):
