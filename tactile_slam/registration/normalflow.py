@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from scipy.linalg.lapack import dposv
 
 from tactile_slam.config import JACOBIAN_KINDS, ConfigError, NormalFlowConfig, lower_limit
-from tactile_slam.geometry.frame import Frame, WindowBatch
+from tactile_slam.geometry.frame import CroppedFrame, Frame, WindowBatch
 from tactile_slam.geometry.morphology import as_weights
 from tactile_slam.registration.jacobian import euler_to_matrix, jacobian_analytic, jacobian_autograd, sobel_at
 from tactile_slam.registration.result import RegistrationError, RegistrationResult, TrackingLost
@@ -245,18 +245,20 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
     (under ``torch.inference_mode``, see :class:`PreparedReference`).
 
     Args:
-        ref: reference frames (``B`` >= 1).
+        ref: reference frames (``B`` >= 1); a :class:`CroppedFrame` (a compacted
+            keyframe's maps) is expanded to full size first.
         config: NormalFlow settings (defaults if ``None``).
-        dtype: working dtype of the maps (default: the frame's, float32).
+        dtype: working dtype of the maps, float32 or float64 (default: the frame's).
 
     Returns:
         a :class:`PreparedReference` on the frame's device.
     """
     config = config or NormalFlowConfig()
+    ref = _full(ref, "reference")
     _check_config(config, ref.shape)
     if len(ref) == 0:
         raise RegistrationError("empty reference batch")
-    dtype = dtype or ref.normals.dtype
+    dtype = _check_dtype(dtype or ref.normals.dtype)
     b, h, w = ref.height.shape
     s = ref.mm_per_px / 1000.0
     gen = torch.Generator().manual_seed(config.seed) if config.selection == "random" else None
@@ -277,6 +279,27 @@ def prepare_reference(ref: Frame, config: NormalFlowConfig | None = None, dtype:
                              normals_map, ref.contact, reference_settings(config))
     _check_reference_finite(prep)
     return prep
+
+
+def _full(frames, what: str, windows: bool = False) -> Frame | WindowBatch:
+    """``frames`` as registration reads them: a :class:`CroppedFrame` expanded to full
+    size, a :class:`WindowBatch` where ``windows`` allows it; anything else is a
+    :class:`RegistrationError` naming ``what``."""
+    if isinstance(frames, CroppedFrame):
+        return frames.expand()
+    kinds = (Frame, WindowBatch) if windows else (Frame,)
+    if not isinstance(frames, kinds):
+        names = "Frame, CroppedFrame" + (" or WindowBatch" if windows else "")
+        raise RegistrationError(f"{what} must be a {names}, got {type(frames).__name__}")
+    return frames
+
+
+def _check_dtype(dtype: torch.dtype) -> torch.dtype:
+    """``dtype`` if NormalFlow can work in it (float32 or float64), else a :class:`RegistrationError`."""
+    if dtype not in (torch.float32, torch.float64):
+        raise RegistrationError(f"NormalFlow works in float32 or float64, got {dtype}: pass dtype=torch.float32 "
+                                "(or build the frames in float32)")
+    return dtype
 
 
 def _spread(points: torch.Tensor, valid: torch.Tensor) -> torch.Tensor:
@@ -634,6 +657,11 @@ def _register_prepared(prep: PreparedReference, tar: Frame | WindowBatch, init_t
     """:func:`register_prepared` without the copy out of inference mode."""
     config = config or NormalFlowConfig()
     _check_config(config, prep.shape)
+    if prep.settings and prep.settings != reference_settings(config):
+        raise RegistrationError(
+            "the reference was prepared with other sample or level settings than this config's "
+            f"({prep.settings} against {reference_settings(config)}): prepare it with this config")
+    tar = _full(tar, "target", windows=True)
     b = len(tar)
     if b == 0:
         raise RegistrationError("empty target batch")
@@ -834,6 +862,7 @@ def register(
     """
     config = config or NormalFlowConfig()
     _check_config(config)
+    ref, tar = _full(ref, "reference"), _full(tar, "target", windows=True)
     b = len(ref)
     if b > 1:
         k = config.n_samples or int(ref.contact.reshape(b, -1).sum(1).max())  # samples per pair (at most)

@@ -210,6 +210,13 @@ def test_nothing_beyond_the_crop_margin_is_read(scene):
     full, cropped = register(ref_n, tars_n, init), register(rebuilt(ref_n), rebuilt(tars_n), init)
     for name in ("tar_T_ref", "ccs", "scr", "n_shared", "iterations", "ok"):
         assert torch.equal(getattr(full, name), getattr(cropped, name)), name
+    # a compacted keyframe's maps (CroppedFrame) register as they are, reference or target
+    one = register(ref_n, tars_n[2:3], init[2])
+    direct = register(crop_to_contact(ref_n), crop_to_contact(tars_n[2]), init[2])
+    prepared = register_prepared(prepare_reference(crop_to_contact(ref_n)), crop_to_contact(tars_n[2]), init[2])
+    for res in (direct, prepared):
+        for name in ("tar_T_ref", "ccs", "n_shared", "iterations", "ok"):
+            assert torch.equal(getattr(res, name), getattr(one, name)), name
 
 
 WINDOW_CONFIGS = {"default": NormalFlowConfig(), "coarse": NormalFlowConfig(coarse_factors=(4,)),
@@ -612,6 +619,33 @@ class TestBadInput:
                          for k, v in vars(tars[:1]).items()})
         with pytest.raises(RegistrationError, match="size"):
             register(ref, small)
+
+    @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16, torch.int32])
+    def test_unsupported_working_dtype(self, scene, dtype):
+        ref, tars, _, _ = scene
+        with pytest.raises(RegistrationError, match="float32 or float64"):
+            register(ref, tars[:1], None, None, dtype)
+        half = replace(ref, normals=ref.normals.to(torch.float16))  # the frame's own dtype
+        with pytest.raises(RegistrationError, match="float32 or float64"):
+            prepare_reference(half)
+
+    def test_not_a_frame(self, scene):
+        ref, tars, _, _ = scene
+        with pytest.raises(RegistrationError, match="target must be a Frame"):
+            register(ref, tars[:1].normals)
+        with pytest.raises(RegistrationError, match="reference must be a Frame"):
+            prepare_reference(window_batch(tars[:1], window_multiple(NormalFlowConfig())))
+
+    def test_preparation_of_other_settings_is_refused(self, scene):
+        """A reference prepared with other samples or levels than the solve's config would
+        silently ignore what the config asks for."""
+        ref, tars, _, _ = scene
+        prep = prepare_reference(ref)
+        for other in (NormalFlowConfig(coarse_factors=(8, 2)), NormalFlowConfig(jacobian="autograd"),
+                      NormalFlowConfig(n_samples=500)):
+            with pytest.raises(RegistrationError, match="prepare it with this config"):
+                register_prepared(prep, tars[:1], None, other)
+        register_prepared(prep, tars[:1], None, NormalFlowConfig(ccs_threshold=0.5))  # thresholds act later
 
     def test_bad_config(self, scene):
         ref, tars, _, _ = scene
