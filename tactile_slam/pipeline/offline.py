@@ -73,11 +73,27 @@ class RunOptions:
 
 @dataclass
 class RunResult:
+    """What a run returns (and writes; docs/outputs.md).
+
+    Attributes:
+        poses: ``(T, 4, 4)`` each frame's sensor pose in the frame of the main group's
+            first contact frame, metres (NaN rows: no pose), as ``poses.npy``.
+        poses_by_group: ``(T, 4, 4)`` each frame's pose in its own group's first contact frame.
+        frame_group: ``(T,)`` each frame's group (-1: none).
+        keyframes: the keyframes in insertion order (their maps cropped to the contact).
+        stats: ``stats.json``.
+        start_T_kf: keyframe id -> ``(4, 4)`` float64 pose of the keyframe in its group's
+            start frame, metres (what :func:`~tactile_slam.recon.reconstruct` takes).
+        keyframe_group: keyframe id -> its group.
+    """
+
     poses: np.ndarray
     poses_by_group: np.ndarray
     frame_group: np.ndarray
     keyframes: list[Keyframe]
     stats: dict = field(default_factory=dict)
+    start_T_kf: dict[int, torch.Tensor] = field(default_factory=dict)
+    keyframe_group: dict[int, int] = field(default_factory=dict)
 
 
 def tracker_counts(tracker) -> dict:
@@ -297,7 +313,7 @@ class OfflinePipeline:
             stats["error"] = f"{type(error).__name__}: {error}"
         write_json(out / "stats.json", stats)
         self.config.save(out / "config.yaml")
-        return RunResult(poses, by_group, groups, keyframes, stats)
+        return RunResult(poses, by_group, groups, keyframes, stats, start_T_kf, group_of_kf)
 
     def _reconstruct(self, keyframes, start_T_kf, group_of_kf, kf_of, kf_T, frame_group) -> dict:
         """Mesh of the main group in the frame of its first contact frame (the frame of

@@ -278,6 +278,23 @@ def test_gradient_input_runs_on_the_requested_device(tracking_episode, tmp_path,
     assert all(kf.maps.device.type == device.type for kf in res.keyframes)
 
 
+def test_result_carries_the_keyframe_poses_for_reconstruction(tracking_episode, tmp_path):
+    """``RunResult.start_T_kf`` / ``keyframe_group`` are what ``keyframes.json`` and
+    ``frame_group.npy`` say, and feed ``reconstruct`` from Python without re-reading files."""
+    from tactile_slam.recon import reconstruct
+
+    res = run(tracking_episode, tmp_path, "gelslam")
+    stored = {k["id"]: k for k in json.loads((tmp_path / "keyframes.json").read_text())}
+    assert set(res.start_T_kf) == set(res.keyframe_group) == set(stored)
+    for i, pose in res.start_T_kf.items():
+        np.testing.assert_array_equal(pose.numpy(), np.array(stored[i]["pose"]))
+    first = {kf.id: kf.video_index for kf in res.keyframes}
+    for i, group in res.keyframe_group.items():
+        assert res.frame_group[first[i]] == group
+    rec = reconstruct(res.keyframes, res.start_T_kf, Config(), res.keyframe_group)
+    assert len(rec.fused_mesh.vertices) > 0
+
+
 def test_nf_baseline_is_the_public_trackers_normalflow(tmp_path):
     """``nf``: frame-to-frame, 5000 random samples, no CCS/SCR checks and none of this
     package's sample rules (slope limits, spread cells); ``nf-kf`` keeps them."""
