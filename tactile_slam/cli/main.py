@@ -38,6 +38,9 @@ def main(argv: list[str] | None = None) -> int:
     try:
         rc = args.func(args)
         return rc if isinstance(rc, int) else 0
+    except KeyboardInterrupt:  # the pipelines keep what they computed before it
+        print(f"tactile-slam {args.command}: interrupted", file=sys.stderr)
+        return 130
     except (ValueError, OSError, RuntimeError) as exc:
         # Errors carry a message that names the problem (an OSError its path: a full disk,
         # a folder removed during the run); show it without a traceback.

@@ -60,4 +60,7 @@ def run(args) -> int:
           f"{s['sessions']} sessions{loops}, {s['fps']:.1f} frames/s -> {out}")
     for line in caveats(s):
         print(f"run: {line}")
+    if not s["completed"]:  # only an interrupt returns here; other errors raise
+        print(f"run: interrupted ({s.get('error', 'KeyboardInterrupt')}); the outputs hold the frames before it")
+        return 130
     return 0

@@ -116,12 +116,24 @@ class FrameDataset(Dataset):
 def iter_batches(frames: Iterable[RawFrame], batch_size: int) -> Iterator[FrameBatch]:
     """Group a stream of frames into batches of ``batch_size`` (the last may be shorter).
 
-    Memory stays bounded by one batch, so this works for live and long sources.
+    Memory stays bounded by one batch, so this works for live and long sources. When the
+    source raises (a corrupt frame, or Ctrl+C while it reads), the frames read before it
+    are yielded first as a shorter batch, then the error is raised: nothing already read
+    is lost.
     """
     if batch_size < 1:
         raise InputError(f"batch_size must be >= 1, got {batch_size}")
     chunk: list[RawFrame] = []
-    for frame in frames:
+    it = iter(frames)
+    while True:
+        try:
+            frame = next(it)
+        except StopIteration:
+            break
+        except (Exception, KeyboardInterrupt):
+            if chunk:
+                yield collate(chunk)
+            raise
         chunk.append(frame)
         if len(chunk) == batch_size:
             yield collate(chunk)

@@ -38,6 +38,14 @@ class BackgroundWarning(UserWarning):
     """The background frames differ from each other more than sensor noise explains."""
 
 
+def is_grey(background: np.ndarray, levels: float = 2.0) -> bool:
+    """Whether a ``(H, W, 3)`` BGR background has no colour: every pixel's channels within
+    ``levels`` intensity levels of each other (a greyscale recording). The calibration
+    decode reads the gel's colour lighting, so such frames cannot be decoded."""
+    bg = np.asarray(background, dtype=np.float32)
+    return bool((bg.max(axis=-1) - bg.min(axis=-1)).max() <= levels)
+
+
 @dataclass(frozen=True)
 class BackgroundCheck:
     """How much the background frames deviate from their mean.

@@ -7,6 +7,7 @@ outputs described in :mod:`tactile_slam.pipeline.outputs`.
 
 from __future__ import annotations
 
+import shutil
 import time
 import warnings
 from dataclasses import dataclass, field, replace
@@ -23,7 +24,7 @@ from tactile_slam.eval.trajectory import write_tum
 from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError
 from tactile_slam.io.dataset import FrameBatch, iter_batches
 from tactile_slam.io.frames import FrameSource
-from tactile_slam.io.scan import check_background, mean_background
+from tactile_slam.io.scan import BackgroundWarning, check_background, is_grey, mean_background
 from tactile_slam.pipeline.odometry import OdometryMap
 from tactile_slam.pipeline.outputs import (check_output_folder, frame_poses, main_group, main_group_poses,
                                           write_frames_csv, write_json)
@@ -69,6 +70,27 @@ class RunOptions:
     batch_size: int = 8
     progress: bool = True
     mesh: bool = True
+
+
+# what a run (and `tactile-slam eval` of it) writes into its folder; a new run into the same
+# folder removes those it does not write again, so nothing of an earlier run is read as its
+RUN_OUTPUTS = ("poses.npy", "poses_by_group.npy", "frame_group.npy", "trajectory_tum.txt", "frames.csv",
+               "keyframes.json", "stats.json", "config.yaml", "loops.json", "loops_held.json", "pose_graph.g2o",
+               "pose_graph.png", "mesh_fused.ply", "mesh.ply", "mesh.png", "metrics.json", "tracking_error.png")
+RUN_OUTPUT_DIRS = ("groups",)
+
+
+def clear_run_outputs(out: Path) -> list[str]:
+    """Remove an earlier run's :data:`RUN_OUTPUTS` and :data:`RUN_OUTPUT_DIRS` from ``out``
+    (other files stay); returns the names removed."""
+    removed = [name for name in RUN_OUTPUTS if (out / name).is_file()]
+    for name in removed:
+        (out / name).unlink()
+    for name in RUN_OUTPUT_DIRS:
+        if (out / name).is_dir():
+            shutil.rmtree(out / name)
+            removed.append(name + "/")
+    return removed
 
 
 @dataclass
@@ -130,6 +152,17 @@ class OfflinePipeline:
             raise ValueError(f"method must be one of {METHODS}, got {self.options.method!r}")
         self.options = replace(self.options, device=resolve_device(self.options.device))
         self.visualizer = visualizer or NullVisualizer()
+        self._outputs_cleared = False
+
+    def _clear_outputs(self) -> None:
+        """Remove an earlier run's outputs from the output folder (:func:`clear_run_outputs`),
+        once per run, before this run writes its first one."""
+        if self._outputs_cleared:
+            return
+        self._outputs_cleared = True
+        stale = clear_run_outputs(self.out_dir) if self.out_dir.is_dir() else []
+        if stale:
+            print(f"{self.out_dir}: replaced the outputs of an earlier run ({', '.join(stale)})")
 
     # ------------------------------------------------------------------ set-up
     def _builder(self, first: FrameBatch, frames) -> tuple[FrameBuilder, FrameBatch | None]:
@@ -154,6 +187,10 @@ class OfflinePipeline:
                 warnings.warn(f"{self.source}: the background frames differ; was the gel touched?", stacklevel=2)
             used = n - sum(len(b) for b in window[:-1])
             rest = window[-1]._map(lambda x: x[used:]) if used < len(window[-1]) else None
+        if is_grey(np.asarray(background)):
+            warnings.warn(f"{self.source}: the frames are greyscale (B = G = R); the calibration model decodes the "
+                          "sensor's colour lighting, so their gradients and poses will be wrong", BackgroundWarning,
+                          stacklevel=2)
         path = self.options.model or self.config.sensor.resolved_model_path()
         if path is None:
             raise InputError(
@@ -237,7 +274,10 @@ class OfflinePipeline:
         finally:
             bar.close()
         wall = time.perf_counter() - t_start
-        backend.finish()
+        try:
+            backend.finish()
+        except KeyboardInterrupt as exc:  # the graph as the last keyframe left it
+            error = error or exc
         result = self._write(indices, kf_of, kf_T, quality, keyframes, backend, t_geom, t_track, t_back, wall,
                              error, tracker_counts(tracker))
         self.visualizer.close()
@@ -257,8 +297,11 @@ class OfflinePipeline:
         out = self.out_dir
         n = len(indices)
         contact_frames = sum(1 for k in kf_of if k >= 0)
+        if n == 0 and error is not None:  # stopped before the first frame: nothing to write
+            raise error
         if n and contact_frames == 0 and error is None:
             raise InputError(f"{self.source}: no frame of {n} is in contact: nothing to track")
+        self._clear_outputs()
         out.mkdir(parents=True, exist_ok=True)
         # poses are indexed by video index: rows for skipped frames (background window) stay NaN
         t = (max(indices) + 1) if indices else 0
@@ -304,11 +347,15 @@ class OfflinePipeline:
                           "backend_per_keyframe": med(t_back)},
             "completed": error is None,
         }
-        if isinstance(backend, BackEnd):
-            stats.update(self._write_backend(backend))
-        if self.options.mesh and error is None:
-            stats["reconstruction"] = self._reconstruct(keyframes, start_T_kf, group_of_kf, kf_of_full, kf_T_full,
-                                                        groups)
+        try:  # an interrupt here still leaves stats.json beside the poses
+            if isinstance(backend, BackEnd):
+                stats.update(self._write_backend(backend))
+            if self.options.mesh and error is None:
+                stats["reconstruction"] = self._reconstruct(keyframes, start_T_kf, group_of_kf, kf_of_full,
+                                                            kf_T_full, groups)
+        except KeyboardInterrupt as exc:
+            error = exc
+            stats["completed"] = False
         if error is not None:
             stats["error"] = f"{type(error).__name__}: {error}"
         write_json(out / "stats.json", stats)

@@ -506,6 +506,7 @@ class OnlinePipeline(OfflinePipeline):
     def _run(self, opts: OnlineOptions) -> RunResult:
         mode = LOOP_MODES[opts.method]
         if mode is not None:
+            self._clear_outputs()  # the back end writes its files into the folder during the run
             self.backend = BackendProcess(self.config, mode, opts.skip_loops, self.out_dir,
                                           opts.preview_every_s, opts.backend_threads)
             self.backend.wait_ready(opts.start_timeout_s)

@@ -137,3 +137,18 @@ class TestIterBatches:
 
     def test_empty_stream(self):
         assert list(iter_batches([], 3)) == []
+
+    def test_frames_read_before_a_corrupt_one_are_kept(self, video):
+        """A source that fails at frame 12 first gives the frames read since the last full
+        batch (10, 11), then its error."""
+        def failing():
+            for frame in video:
+                if frame.index == 12:
+                    raise InputError("cannot decode frame 12")
+                yield frame
+
+        batches = iter_batches(failing(), 5)
+        assert [b.index.tolist() for b in (next(batches), next(batches), next(batches))] == \
+            [[0, 1, 2, 3, 4], [5, 6, 7, 8, 9], [10, 11]]
+        with pytest.raises(InputError, match="frame 12"):
+            next(batches)

@@ -181,6 +181,21 @@ def test_a_model_of_another_field_of_view_is_warned_about(tmp_path):
             OfflinePipeline(VideoSource(tmp_path / "flat.avi"), Config(), tmp_path / "out", options).run()
 
 
+def test_greyscale_frames_are_warned_about(tmp_path):
+    """The decode reads colour: a greyscale recording (B = G = R) warns before tracking."""
+    from tactile_slam.io.scan import BackgroundWarning, is_grey
+    from tactile_slam.io.video import VideoSource, write_video
+
+    write_video(tmp_path / "grey.avi", np.full((12, 240, 320, 3), 128, np.uint8), 25.0)
+    with pytest.warns(BackgroundWarning, match="greyscale"):
+        with pytest.raises(InputError):  # and no contact
+            OfflinePipeline(VideoSource(tmp_path / "grey.avi"), Config(), tmp_path / "out",
+                            RunOptions(progress=False)).run()
+    colour = np.full((4, 4, 3), 128.0)
+    colour[1, 2] = (120, 128, 135)
+    assert is_grey(np.full((4, 4, 3), 77.0)) and not is_grey(colour)
+
+
 def test_cli_bad_inputs(tmp_path, capsys):
     assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o1")]) == 2
     assert "not found" in capsys.readouterr().err
@@ -293,6 +308,42 @@ def test_result_carries_the_keyframe_poses_for_reconstruction(tracking_episode, 
         assert res.frame_group[first[i]] == group
     rec = reconstruct(res.keyframes, res.start_T_kf, Config(), res.keyframe_group)
     assert len(rec.fused_mesh.vertices) > 0
+
+
+def test_a_new_run_replaces_every_output_of_an_earlier_one(tracking_episode, tmp_path):
+    """Outputs the new run does not write (loops, graph, meshes, an earlier eval's metrics)
+    are removed, so nothing of the earlier run is read as the new one's; other files stay."""
+    run(tracking_episode, tmp_path, "gelslam", mesh=True)
+    (tmp_path / "metrics.json").write_text("{}")
+    (tmp_path / "notes.txt").write_text("mine")
+    before = {p.name for p in tmp_path.iterdir()}
+    assert {"loops.json", "pose_graph.g2o", "mesh.ply"} <= before
+    run(tracking_episode, tmp_path, "nf-kf")
+    after = {p.name for p in tmp_path.iterdir()}
+    assert not after & {"loops.json", "loops_held.json", "pose_graph.g2o", "pose_graph.png", "mesh.ply",
+                        "mesh_fused.ply", "mesh.png", "metrics.json"}
+    assert "notes.txt" in after and json.loads((tmp_path / "stats.json").read_text())["method"] == "nf-kf"
+
+
+def _interrupted_after(source, n):
+    """``source``'s frames, then a Ctrl+C after the ``n``-th."""
+    for i, frame in enumerate(source):
+        if i == n:
+            raise KeyboardInterrupt
+        yield frame
+
+
+def test_an_interrupt_keeps_the_frames_before_it(tracking_episode, tmp_path):
+    src = GradientSequence(tracking_episode / "gt_gradients.npz", fps=25)
+    res = OfflinePipeline(_interrupted_after(src, 30), Config(), tmp_path / "out",
+                          RunOptions(method="nf-kf", progress=False, mesh=False, batch_size=8)).run()
+    assert not res.stats["completed"] and res.stats["frames"] == 30
+    assert res.stats["error"].startswith("KeyboardInterrupt")
+    assert np.load(tmp_path / "out" / "poses.npy").shape == (30, 4, 4)
+    with pytest.raises(KeyboardInterrupt):  # before the first frame: nothing to keep, nothing written
+        OfflinePipeline(_interrupted_after(src, 0), Config(), tmp_path / "none",
+                        RunOptions(method="nf-kf", progress=False, mesh=False)).run()
+    assert not (tmp_path / "none").exists()
 
 
 def test_nf_baseline_is_the_public_trackers_normalflow(tmp_path):
