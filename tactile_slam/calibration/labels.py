@@ -10,17 +10,19 @@ Detection (no model needed, no thresholds tuned to one data set):
    the **contact rim**: the gel follows the sphere inside the contact, so its slope (and
    colour change) grows up to the rim and decays outside it;
 3. a circle is fitted to the per-ray peaks (algebraic fit, trimmed of outliers); rays
-   that leave the image before their peak are dropped, so presses cut by the border keep
-   an unbiased centre; steps 2-3 repeat from the new centre until the circle settles;
+   that leave the image before their peak, or before the previous round's rim, are
+   dropped (unobserved), so presses cut by the border keep an unbiased circle; steps 2-3
+   repeat from the new centre until the circle settles;
 4. steps 2-3 run from several starts (the centroid and points around it), because a
    colour feature inside the contact can hold a fit that starts near it; the contact rim
    encloses every such feature, so the **largest** circle that passes every check below
-   is the label.
+   is the label (flagged when a larger fit around its centre fails only for the border).
 
 A label is flagged unreliable (kept in the file, never trained on) when too little of
-its rim is visible, the rim is not circular, or it contradicts the ball geometry: a
-contact radius ``a`` must be below the ball radius ``R`` and imply an indentation
-``R - sqrt(R^2 - a^2)`` no deeper than the sensor's maximum.
+the fitted circle lies inside the image, the rim is not circular, or it contradicts the
+ball geometry: a contact radius ``a`` must be below the ball radius ``R`` and imply an
+indentation ``R - sqrt(R^2 - a^2)`` no deeper than the sensor's maximum and at least
+1 px deep. A press without contact is flagged by :func:`label_presses`.
 
 Label files are CSV with header ``experiment_reldir,cx,cy,radius`` (pixels, ``cx`` the
 column, ``cy`` the row) and optional ``reliable`` (1/0) and ``reason`` columns. Rows of a
@@ -75,7 +77,8 @@ class PressLabel:
     """Contact circle of one press in pixels (``cx`` column, ``cy`` row, ``radius``).
 
     ``reliable`` is False when the label must not be trained on; ``reason`` says why.
-    ``source`` is ``"auto"`` (detected) or ``"file"`` (read from a labels file).
+    ``source`` is ``"auto"`` (detected) or ``"file"`` (read from a labels file). A press
+    without contact has a NaN circle (flagged, reason ``"no contact ..."``).
     ``visible`` is the fraction of the rim inside the image, ``residual_px`` the median
     distance of the rim points to the circle (both NaN for file labels).
     """
@@ -94,9 +97,9 @@ class PressLabel:
 @dataclass(frozen=True)
 class DetectionConfig:
     """Detector settings; all but the geometry are dimensionless or relative. Lengths
-    (``blur_sigma``, ``settle_px``, ``max_residual_px``, ``min_radius_px``) are pixels
-    at :data:`PIXEL_SCALE_MM`; :meth:`at_scale` converts them for another image scale
-    (:func:`label_presses` does so).
+    (``blur_sigma``, ``settle_px``, ``max_residual_px``, ``min_radius_px``,
+    ``min_indentation_px``) are pixels at :data:`PIXEL_SCALE_MM`; :meth:`at_scale`
+    converts them for another image scale (:func:`label_presses` does so).
 
     ``noise_sigmas``: changed-pixel threshold in robust noise standard deviations.
     ``n_rays``: rays cast from the centre. ``iterations``: most ray-and-fit rounds per
@@ -105,7 +108,9 @@ class DetectionConfig:
     a fit has settled when its circle (centre shift plus radius change) moves less than
     this in a round. ``min_visible``: least fraction of the rim inside the image for a
     reliable label. ``max_residual_px``: largest median distance of rim points to the
-    fitted circle. ``min_radius_px``: smallest reliable radius.
+    fitted circle. ``min_radius_px``: smallest reliable radius. ``min_indentation_px``:
+    shallowest reliable indentation ``R - sqrt(R^2 - a^2)``; a contact narrower than that
+    of a 1-px-deep press (``a < sqrt(2 R - 1)``) belongs to a smaller ball than catalogued.
     """
 
     noise_sigmas: float = 8.0
@@ -117,6 +122,7 @@ class DetectionConfig:
     min_visible: float = 0.6
     max_residual_px: float = 3.0
     min_radius_px: float = 8.0
+    min_indentation_px: float = 1.0
 
     def __post_init__(self) -> None:
         for name, least in (("iterations", 1), ("starts", 1), ("n_rays", 8)):
@@ -129,7 +135,8 @@ class DetectionConfig:
         """These settings for images at ``mm_per_px``: lengths converted from pixels at
         :data:`PIXEL_SCALE_MM` (the same settings at that scale)."""
         return replace(self, **{name: to_scale(getattr(self, name), mm_per_px)
-                                for name in ("blur_sigma", "settle_px", "max_residual_px", "min_radius_px")})
+                                for name in ("blur_sigma", "settle_px", "max_residual_px", "min_radius_px",
+                                             "min_indentation_px")})
 
 
 def _fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
@@ -163,7 +170,7 @@ def indentation_px(radius: float, ball_radius_px: float) -> float:
 
 
 class _RimFit(NamedTuple):
-    """One start's circle (px), the fraction of rays that found the rim, the median
+    """One start's circle (px), the fraction of that circle inside the image, the median
     residual of the rim points, and whether the fit settled."""
 
     cx: float
@@ -181,6 +188,13 @@ def _settled(fits: list[_RimFit], tol: float) -> bool:
     def move(a: _RimFit, b: _RimFit) -> float:
         return math.hypot(a.cx - b.cx, a.cy - b.cy) + abs(a.radius - b.radius)
     return any(len(fits) > k and move(fits[-1], fits[-1 - k]) < tol for k in (1, 2))
+
+
+def _visible_fraction(cx: float, cy: float, radius: float, shape: tuple[int, int], n: int) -> float:
+    """Fraction of ``n`` points evenly spaced on the circle that lie inside an image of ``shape`` = (H, W)."""
+    t = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
+    x, y = cx + radius * np.cos(t), cy + radius * np.sin(t)
+    return float(((x >= 0) & (x <= shape[1] - 1) & (y >= 0) & (y <= shape[0] - 1)).mean())
 
 
 def _rim_fit(dist: np.ndarray, threshold: float, cx: float, cy: float, ball_radius_px: float,
@@ -201,13 +215,16 @@ def _rim_fit(dist: np.ndarray, threshold: float, cx: float, cy: float, ball_radi
         prof = cv2.remap(dist, rx, ry, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=-1.0)
         inside = (rx >= 0) & (rx <= w - 1) & (ry >= 0) & (ry <= h - 1)
         peak = prof.argmax(axis=1)
-        # a ray counts when it stays in the image a few px beyond its peak, and the peak
-        # is interior to the search range and above the noise threshold
-        beyond = np.minimum(peak + int(2.0 / step), radii.size - 1)
-        in_until = np.cumprod(inside, axis=1)[np.arange(cfg.n_rays), beyond].astype(bool)
-        ok = in_until & (peak > 0) & (peak < radii.size - 1) & (prof[np.arange(cfg.n_rays), peak] > threshold)
+        # a ray counts when it stays in the image 2 px beyond both its peak and the rim of
+        # the previous round's circle (a ray that leaves the image short of the rim cannot
+        # have seen it: the peak it found lies inside the contact), and the peak is interior
+        # to the search range and above the noise threshold
+        rim = 0 if not fits else int(np.searchsorted(radii, fits[-1].radius))
+        beyond = np.minimum(np.maximum(peak, rim) + int(2.0 / step), radii.size - 1)
+        observed = np.cumprod(inside, axis=1)[np.arange(cfg.n_rays), beyond].astype(bool)
+        ok = observed & (peak > 0) & (peak < radii.size - 1) & (prof[np.arange(cfg.n_rays), peak] > threshold)
         if ok.sum() < 8:
-            return fits[-1] if fits else _RimFit(cx, cy, math.nan, float(ok.mean()), math.nan, False)
+            return fits[-1] if fits else _RimFit(cx, cy, math.nan, math.nan, math.nan, False)
         # sub-sample peak: vertex of the parabola through the peak and its neighbours
         rows = np.arange(cfg.n_rays)[ok]
         p0, pm, pp = prof[rows, peak[ok]], prof[rows, peak[ok] - 1], prof[rows, peak[ok] + 1]
@@ -215,19 +232,17 @@ def _rim_fit(dist: np.ndarray, threshold: float, cx: float, cy: float, ball_radi
         frac = np.where(curv < 0, 0.5 * (pm - pp) / np.where(curv < 0, curv, -1.0), 0.0).clip(-0.5, 0.5)
         rad = radii[peak[ok]] + frac * step
         cx, cy, r, residual = _trimmed_circle(cx + np.cos(angles[ok]) * rad, cy + np.sin(angles[ok]) * rad)
-        fits.append(_RimFit(cx, cy, r, float(ok.mean()), residual, False))
+        fits.append(_RimFit(cx, cy, r, _visible_fraction(cx, cy, r, (h, w), cfg.n_rays), residual, False))
         if _settled(fits, cfg.settle_px):
             break
     best = min(fits[-2:], key=lambda f: f.residual)
     return best._replace(settled=_settled(fits, cfg.settle_px))
 
 
-def _label_problems(fit: _RimFit, ball_radius_px: float, max_indentation_px: float, cfg: DetectionConfig
+def _shape_problems(fit: _RimFit, ball_radius_px: float, max_indentation_px: float, cfg: DetectionConfig
                     ) -> list[str]:
-    """Why a fitted circle cannot be trained on (empty when it can)."""
-    reasons = [] if fit.settled else [f"rim fit did not settle within {cfg.iterations} rounds"]
-    if fit.visible < cfg.min_visible:
-        reasons.append(f"only {fit.visible:.0%} of the rim is inside the image")
+    """Why a fitted circle is no contact rim of this ball, wherever it lies (empty when it may be)."""
+    reasons = []
     if fit.residual > cfg.max_residual_px:
         reasons.append(f"rim is not circular (median residual {fit.residual:.1f} px)")
     if fit.radius < cfg.min_radius_px:
@@ -237,7 +252,22 @@ def _label_problems(fit: _RimFit, ball_radius_px: float, max_indentation_px: flo
         reasons.append(
             f"contact radius {fit.radius:.1f} px implies indentation {depth:.1f} px > max {max_indentation_px:.1f} px"
         )
+    elif depth < cfg.min_indentation_px:
+        reasons.append(
+            f"contact radius {fit.radius:.1f} px implies indentation {depth:.2f} px < {cfg.min_indentation_px:g} px "
+            f"for a ball of radius {ball_radius_px:.1f} px: is its diameter in catalog.csv right?"
+        )
     return reasons
+
+
+def _label_problems(fit: _RimFit, ball_radius_px: float, max_indentation_px: float, cfg: DetectionConfig
+                    ) -> list[str]:
+    """Why a fitted circle cannot be trained on (empty when it can): :func:`_shape_problems`,
+    after a fit that did not settle or a rim mostly outside the image."""
+    reasons = [] if fit.settled else [f"rim fit did not settle within {cfg.iterations} rounds"]
+    if fit.visible < cfg.min_visible:
+        reasons.append(f"only {fit.visible:.0%} of the rim is inside the image")
+    return reasons + _shape_problems(fit, ball_radius_px, max_indentation_px, cfg)
 
 
 def detect_contact_circle(
@@ -296,13 +326,25 @@ def detect_contact_circle(
     fits = [_rim_fit(dist, threshold, sx, sy, ball_radius_px, cfg) for sx, sy in starts]
     if not any(math.isfinite(f.radius) for f in fits):
         raise NoContactError(
-            f"press {reldir or '?'}: no contact rim found (only {fits[0].visible:.0%} of rays peak inside the image)"
+            f"press {reldir or '?'}: no contact rim found (from no start did 8 of {cfg.n_rays} rays see a peak "
+            "of the colour distance inside the image)"
         )
     checked = [(f, _label_problems(f, ball_radius_px, max_indentation_px, cfg))
                for f in fits if math.isfinite(f.radius)]
     passing = [f for f, problems in checked if not problems]
     if passing:
         best = max(passing, key=lambda f: f.radius)
+        # the contact rim encloses every colour feature: a circle around this one's centre, larger
+        # by more than a rim's residual, that fails only for the border (or for not settling)
+        # may be the rim, and this a feature inside it
+        outer = [f for f, problems in checked if problems
+                 and not _shape_problems(f, ball_radius_px, max_indentation_px, cfg)
+                 and f.radius > best.radius + cfg.max_residual_px
+                 and math.hypot(f.cx - best.cx, f.cy - best.cy) < f.radius]
+        if outer:
+            return PressLabel(reldir, best.cx, best.cy, best.radius, False,
+                              f"inside a larger rim fit (radius {max(f.radius for f in outer):.1f} px) that is cut by "
+                              "the image border or did not settle", "auto", best.visible, best.residual)
         return PressLabel(reldir, best.cx, best.cy, best.radius, True, "", "auto", best.visible, best.residual)
     best, problems = checked[0]  # nothing passes: the centroid start's fit (or the first that found a rim), flagged
     return PressLabel(reldir, best.cx, best.cy, best.radius, False, "; ".join(problems), "auto", best.visible,
@@ -310,7 +352,8 @@ def detect_contact_circle(
 
 
 def read_labels(path: str | Path) -> dict[str, PressLabel]:
-    """Read a labels CSV (``experiment_reldir,cx,cy,radius[,reliable][,reason]``) keyed by reldir."""
+    """Read a labels CSV (``experiment_reldir,cx,cy,radius[,reliable][,reason]``) keyed by reldir.
+    A flagged row (``reliable`` 0) may leave ``cx,cy,radius`` empty: a press without contact."""
     path = Path(path)
     if not path.is_file():
         raise CalibrationDataError(f"labels file not found: {path}")
@@ -323,27 +366,29 @@ def read_labels(path: str | Path) -> dict[str, PressLabel]:
         for i, row in enumerate(reader, start=2):
             row = {k.strip(): (v or "").strip() for k, v in row.items() if k is not None}
             try:
-                cx, cy, rad = float(row["cx"]), float(row["cy"]), float(row["radius"])
+                cx, cy, rad = (float(row[k] or "nan") for k in ("cx", "cy", "radius"))
             except ValueError as exc:
                 raise CalibrationDataError(f"{path}:{i}: cx, cy, radius must be numbers: {row}") from exc
-            if not all(map(math.isfinite, (cx, cy, rad))) or rad <= 0:
-                raise CalibrationDataError(f"{path}:{i}: need finite cx, cy and radius > 0, got {row}")
             reliable = row.get("reliable", "1") in ("", "1", "true", "True", "yes")
+            no_circle = not reliable and not any(map(math.isfinite, (cx, cy, rad)))  # a flagged press without contact
+            if not no_circle and (not all(map(math.isfinite, (cx, cy, rad))) or rad <= 0):
+                raise CalibrationDataError(f"{path}:{i}: need finite cx, cy and radius > 0, got {row}")
             reldir = row["experiment_reldir"]
             out[reldir] = PressLabel(reldir, cx, cy, rad, reliable, row.get("reason", ""), "file")
     return out
 
 
 def write_labels(path: str | Path, labels: list[PressLabel]) -> Path:
-    """Write labels as CSV: ``experiment_reldir,cx,cy,radius,reliable,reason,source``."""
+    """Write labels as CSV: ``experiment_reldir,cx,cy,radius,reliable,reason,source`` (the
+    circle left empty for a press without contact)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with path.open("w", newline="") as f:
         wr = csv.writer(f)
         wr.writerow([*LABEL_COLUMNS, "reliable", "reason", "source"])
         for lb in labels:
-            wr.writerow([lb.reldir, f"{lb.cx:.2f}", f"{lb.cy:.2f}", f"{lb.radius:.2f}", int(lb.reliable),
-                         lb.reason, lb.source])
+            circle = [f"{v:.2f}" if math.isfinite(v) else "" for v in (lb.cx, lb.cy, lb.radius)]
+            wr.writerow([lb.reldir, *circle, int(lb.reliable), lb.reason, lb.source])
     return path
 
 
@@ -358,11 +403,13 @@ def label_presses(
     set's scale (:meth:`DetectionConfig.at_scale`).
 
     Presses listed in ``overrides`` (e.g. from :func:`read_labels`) take that label and
-    are not detected; the others are detected with :func:`detect_contact_circle`.
+    are not detected; the others are detected with :func:`detect_contact_circle`. A
+    detected press without contact is flagged (reason ``"no contact ..."``, its circle NaN),
+    so that training and evaluation skip it.
 
     Raises:
         CalibrationDataError: an override names a press not in the catalog.
-        NoContactError: a press without override shows no contact.
+        NoContactError: no press shows contact (and none has an override).
     """
     overrides = overrides or {}
     unknown = sorted(set(overrides) - {p.reldir for p in calib.presses})
@@ -374,19 +421,27 @@ def label_presses(
         if press.reldir in overrides:
             out.append(overrides[press.reldir])
             continue
-        out.append(
-            detect_contact_circle(
-                calib.image(press), calib.background, press.ball_radius_px(mm_per_px),
-                max_indentation_mm / mm_per_px, cfg, press.reldir,
+        try:
+            out.append(
+                detect_contact_circle(
+                    calib.image(press), calib.background, press.ball_radius_px(mm_per_px),
+                    max_indentation_mm / mm_per_px, cfg, press.reldir,
+                )
             )
-        )
+        except NoContactError as exc:
+            out.append(PressLabel(press.reldir, math.nan, math.nan, math.nan, False, f"no contact ({exc})"))
+    if not any(math.isfinite(lb.radius) for lb in out):
+        raise NoContactError(f"no press in {calib.root} shows contact, first: {out[0].reason}")
     return out
 
 
 def draw_label(image: np.ndarray, label: PressLabel, margin_px: float = RIM_MARGIN_PX) -> np.ndarray:
     """Copy of a ``(H, W, 3)`` uint8 image with the circle (green: reliable, red: flagged),
-    the trained disc (radius - margin, thin) and the centre drawn in."""
+    the trained disc (radius - margin, thin) and the centre drawn in; an unchanged copy for a
+    label without circle (a press without contact)."""
     out = image.copy()
+    if not math.isfinite(label.radius):  # a press without contact: nothing to draw
+        return out
     colour = (0, 200, 0) if label.reliable else (0, 0, 255)
     shift = 4  # sub-pixel drawing: coordinates in 1/16 px
     c = (round(label.cx * 16), round(label.cy * 16))
@@ -408,7 +463,8 @@ def write_overlays(calib: CalibrationSet, labels: list[PressLabel], out_dir: str
         img = draw_label(calib.image(calib.press(lb.reldir)), lb, margin_px)
         cv2.imwrite(str(out_dir / f"{lb.reldir.replace('/', '_')}.png"), img)
         tile = cv2.resize(img, (img.shape[1] // 2, img.shape[0] // 2), interpolation=cv2.INTER_AREA)
-        text = f"{lb.reldir} r={lb.radius:.1f}" + ("" if lb.reliable else " FLAGGED")
+        text = f"{lb.reldir} " + (f"r={lb.radius:.1f}" if math.isfinite(lb.radius) else "no contact") \
+            + ("" if lb.reliable else " FLAGGED")
         cv2.putText(tile, text, (3, 12), cv2.FONT_HERSHEY_SIMPLEX, 0.35,
                     (255, 255, 255) if lb.reliable else (0, 0, 255), 1, cv2.LINE_AA)
         tiles.append(tile)
