@@ -14,6 +14,8 @@ from __future__ import annotations
 
 import csv
 import hashlib
+import re
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,6 +29,14 @@ PRESS_IMAGE_NAME = "gelsight.png"
 
 class CalibrationDataError(ValueError):
     """A calibration folder, catalog, image or label is missing or malformed."""
+
+
+class CatalogWarning(UserWarning):
+    """A catalog row that reads but looks wrong (a press folder named for another diameter)."""
+
+
+_FOLDER_DIAMETER = re.compile(r"^(\d+(?:\.(\d*))?)mm/")
+"""A press folder ``<d.ddd>mm/...`` of the SDK's layout: the diameter, and its decimals."""
 
 
 @dataclass(frozen=True)
@@ -95,19 +105,28 @@ def read_image(path: Path, shape: tuple[int, int] | None = None) -> np.ndarray:
 
 
 def read_catalog(path: Path) -> list[tuple[str, float]]:
-    """Rows ``(reldir, diameter_mm)`` of a ``catalog.csv``; validates header and values."""
+    """Rows ``(reldir, diameter_mm)`` of a ``catalog.csv``; validates header and values.
+
+    The file may start with a UTF-8 byte-order mark and end its lines in CRLF; columns past
+    the first two are ignored (a trailing comma makes an empty one), and backslashes in
+    ``experiment_reldir`` (Windows paths) become ``/``.
+
+    Warns:
+        CatalogWarning: a press folder named ``<d>mm/...`` whose ``d``, to the name's
+            decimals, is not the listed diameter.
+    """
     path = Path(path)
     if not path.is_file():
         raise CalibrationDataError(f"catalog not found: {path} (expected header {','.join(CATALOG_HEADER)})")
-    with path.open(newline="") as f:
+    with path.open(newline="", encoding="utf-8-sig") as f:  # -sig: a byte-order mark is no part of the header
         rows = [r for r in csv.reader(f) if r and any(c.strip() for c in r)]
-    if not rows or tuple(c.strip() for c in rows[0]) != CATALOG_HEADER:
+    if not rows or tuple(c.strip() for c in rows[0][:2]) != CATALOG_HEADER:
         raise CalibrationDataError(f"{path}: header must be {','.join(CATALOG_HEADER)}, got {rows[:1]}")
-    out, seen = [], set()
+    out, seen, misnamed = [], set(), []
     for i, row in enumerate(rows[1:], start=2):
-        if len(row) != 2:
+        if len(row) < 2:
             raise CalibrationDataError(f"{path}:{i}: expected 2 columns, got {row}")
-        reldir = row[0].strip()
+        reldir = row[0].strip().replace("\\", "/")
         try:
             diameter = float(row[1])
         except ValueError as exc:
@@ -118,8 +137,15 @@ def read_catalog(path: Path) -> list[tuple[str, float]]:
             raise CalibrationDataError(f"{path}:{i}: press {reldir!r} listed twice")
         seen.add(reldir)
         out.append((reldir, diameter))
+        named = _FOLDER_DIAMETER.match(reldir)
+        if named and abs(float(named[1]) - diameter) > 0.5 * 10.0 ** -len(named[2] or "") + 1e-9:
+            misnamed.append(f"{reldir} listed as {row[1].strip()} mm")
     if not out:
         raise CalibrationDataError(f"{path} lists no presses")
+    if misnamed:
+        warnings.warn(f"{path}: {len(misnamed)} press folder(s) named for another ball diameter than listed: "
+                      f"{', '.join(misnamed[:5])}; a wrong diameter gives wrong training targets", CatalogWarning,
+                      stacklevel=2)
     return out
 
 

@@ -1,10 +1,11 @@
 import shutil
+import warnings
 
 import cv2
 import numpy as np
 import pytest
 
-from tactile_slam.calibration.catalog import CalibrationDataError, load_calibration_set, read_catalog
+from tactile_slam.calibration.catalog import CalibrationDataError, CatalogWarning, load_calibration_set, read_catalog
 
 
 class TestLoadCalibrationSet:
@@ -74,7 +75,8 @@ class TestReadCatalog:
             ("experiment_reldir,diameter(mm)\n6.310mm/0,-1\n", "> 0"),
             ("experiment_reldir,diameter(mm)\n6.310mm/0,nan\n", "> 0"),
             ("experiment_reldir,diameter(mm)\n6.310mm/0,6.31\n6.310mm/0,6.31\n", "twice"),
-            ("experiment_reldir,diameter(mm)\n6.310mm/0,6.31,3\n", "2 columns"),
+            ("experiment_reldir,diameter(mm)\n6.310mm/0\n", "2 columns"),
+            ("experiment_reldir,note,diameter(mm)\n6.310mm/0,x,6.31\n", "header"),
         ],
     )
     def test_bad_catalog(self, tmp_path, text, match):
@@ -85,3 +87,33 @@ class TestReadCatalog:
     def test_rows(self, tmp_path):
         (tmp_path / "catalog.csv").write_text("experiment_reldir,diameter(mm)\n6.310mm/0,6.31\n\n9.500mm/3,9.5\n")
         assert read_catalog(tmp_path / "catalog.csv") == [("6.310mm/0", 6.31), ("9.500mm/3", 9.5)]
+
+    @pytest.mark.parametrize(
+        "text",
+        [
+            "\ufeffexperiment_reldir,diameter(mm)\r\n6.310mm/0,6.31\r\n9.500mm/3,9.5\r\n",  # BOM, CRLF
+            "experiment_reldir,diameter(mm),\n6.310mm/0,6.31,\n9.500mm/3,9.5,,\n",  # trailing commas
+            "experiment_reldir,diameter(mm),note\n6.310mm/0,6.31,first\n9.500mm/3,9.5,x,y\n",  # extra columns
+            "experiment_reldir,diameter(mm)\n6.310mm\\0,6.31\n9.500mm\\3,9.5\n",  # Windows paths
+        ],
+    )
+    def test_lenient_formats(self, tmp_path, text):
+        """Files written by spreadsheets and on Windows: all were rejected (or kept the
+        BOM in the header, or a backslash in the path) before 2026-12-03."""
+        (tmp_path / "catalog.csv").write_text(text, encoding="utf-8", newline="")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            assert read_catalog(tmp_path / "catalog.csv") == [("6.310mm/0", 6.31), ("9.500mm/3", 9.5)]
+
+    @pytest.mark.parametrize("row", ["9.500mm/5,6.31", "6.310mm/7,63.1", "6mm/1,6.7"])
+    def test_diameter_that_contradicts_the_folder_warns(self, tmp_path, row):
+        (tmp_path / "catalog.csv").write_text(f"experiment_reldir,diameter(mm)\n6.310mm/0,6.31\n{row}\n")
+        with pytest.warns(CatalogWarning, match=f"1 press folder.*{row.split(',')[0]} listed as"):
+            assert len(read_catalog(tmp_path / "catalog.csv")) == 2
+
+    @pytest.mark.parametrize("row", ["6.31mm/1,6.31", "6mm/1,6.31", "6.310mm/1,6.3104", "ball_a/1,9.5"])
+    def test_matching_or_unnamed_folders_do_not_warn(self, tmp_path, row):
+        (tmp_path / "catalog.csv").write_text(f"experiment_reldir,diameter(mm)\n{row}\n")
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")
+            read_catalog(tmp_path / "catalog.csv")
