@@ -23,6 +23,11 @@ from tactile_slam.calibration.train import TrainConfig, train_model, write_train
 from tactile_slam.config import SensorConfig
 
 
+ADVISABLE_PRESSES = 50
+"""Usable presses (reliable labels, training and held-out together) below which
+:func:`run_training` warns: docs/calibration.md advises about 50, spread over the gel."""
+
+
 def labels_for(calib: CalibrationSet, sensor: SensorConfig, labels_file: str | Path | None = None) -> list[PressLabel]:
     """Labels of every press: from ``labels_file`` where it lists the press, detected otherwise."""
     overrides = read_labels(labels_file) if labels_file is not None else None
@@ -62,9 +67,17 @@ def run_training(
     write_labels(out / "labels.csv", labels)
     write_overlays(calib, labels, out / "overlays", margin_px=rim_margin_px(sensor.mm_per_px))
     by_dir = {lb.reldir: lb for lb in labels}
-    flagged = [lb.reldir for lb in labels if not lb.reliable]
-    say(f"{len(labels)} presses labelled, {len(flagged)} flagged: {flagged}")
+    flagged = [lb for lb in labels if not lb.reliable]
+    say(f"{len(labels)} presses labelled, {len(flagged)} flagged" + "".join(
+        f"\n  warning: skipping {lb.reldir}: {lb.reason}" for lb in flagged))
     data = build_dataset(calib, by_dir, sensor.mm_per_px, cfg.seed, test_fraction)
+    used = len(data.train.reldirs) + len(data.test.reldirs)
+    if used < ADVISABLE_PRESSES:
+        say(f"warning: only {used} usable presses ({len(data.train.reldirs)} to train on, {len(data.test.reldirs)} "
+            f"held out); about {ADVISABLE_PRESSES} spread over the gel are advisable (docs/calibration.md)")
+    if not data.test.reldirs:
+        say("warning: no press is held out for testing: evaluation.json stays empty and the model's accuracy is "
+            "unmeasured; record more presses or raise --test-fraction")
     say(f"{len(data.train)} train / {len(data.test)} test samples; training MLP 5-"
         f"{'-'.join(map(str, cfg.hidden))}-2 on {cfg.device}")
     result = train_model(data.train, cfg, data.test if len(data.test) else None)
@@ -74,7 +87,7 @@ def run_training(
         fits = ", ".join(f"seed {r['seed']} {r['train_mae']:.4f}" for r in result.restarts)
         say(f"kept seed {result.seed}; training angle MAE (rad): {fits}")
     evals = {"model": evaluate_model(model, calib, by_dir, data.split["test"], sensor.mm_per_px)} \
-        if data.split["test"] else {}
+        if data.test.reldirs else {}
     if reference is not None and evals:
         ref_model, _ = load_model(reference, cfg.device)
         evals["reference"] = evaluate_model(ref_model, calib, by_dir, data.split["test"], sensor.mm_per_px)

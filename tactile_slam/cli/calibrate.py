@@ -68,6 +68,9 @@ def _evaluate(args) -> int:
     if args.presses == "heldout" or (args.presses == "auto" and meta.get("data_fingerprint") == calib.fingerprint()):
         if meta.get("data_fingerprint") != calib.fingerprint() or "split" not in meta:
             raise ValueError(f"{args.model} was not trained on {args.calib_dir}: it has no held-out presses there")
+        if not meta["split"]["test"]:
+            raise ValueError(f"{args.model} was trained with no press held out: evaluate it with --presses all "
+                             "(in-sample) or on another calibration folder")
         reldirs, which = list(meta["split"]["test"]), "the model's held-out presses"
     evals = {Path(args.model).name: evaluate_model(model, calib, labels, reldirs, sensor.mm_per_px)}
     if args.reference:
@@ -75,6 +78,8 @@ def _evaluate(args) -> int:
         evals[f"reference:{Path(args.reference).name}"] = evaluate_model(ref, calib, labels, reldirs,
                                                                          sensor.mm_per_px)
     print(f"evaluated on {which} ({len(reldirs)})")
+    for reldir, reason in next(iter(evals.values())).skipped.items():
+        print(f"  warning: skipped {reldir}: {reason}")
     print(format_comparison(evals))
     print()
     print(format_slope_gain(evals))

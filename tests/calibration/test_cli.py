@@ -117,3 +117,41 @@ def test_collect_with_a_fake_sensor(tmp_path, monkeypatch):
     calib = load_calibration_set(out, (240, 320))
     (lb,) = label_presses(calib, MM_PER_PX, 2.0)
     assert abs(lb.cx - 150) < 1 and abs(lb.cy - 110) < 1 and abs(lb.radius - 25) < 1.5
+
+
+def test_train_skips_a_press_without_contact_and_warns_on_few_presses(synthetic_calib, tmp_path, capsys):
+    """A press without contact stopped label, train and evaluate with NoContactError; now
+    it is flagged and skipped, with a warning. Six presses are far fewer than advisable."""
+    import cv2
+    import numpy as np
+
+    from .conftest import render, synthetic_background
+
+    cv2.imwrite(str(synthetic_calib / "9.500mm/0/gelsight.png"),
+                render(synthetic_background(), np.zeros((240, 320, 2)), seed=9))
+    assert main(["calibrate", "label", str(synthetic_calib), "--out", str(tmp_path / "l")]) == 0
+    assert "flagged 9.500mm/0: no contact" in capsys.readouterr().out
+    out = tmp_path / "m"
+    assert main(["calibrate", "train", str(synthetic_calib), "--out", str(out), "--epochs", "1", "--hidden", "4",
+                 "--restarts", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "warning: skipping 9.500mm/0: no contact" in text
+    assert "warning: only 5 usable presses (4 to train on, 1 held out); about 50" in text
+    assert main(["calibrate", "evaluate", str(synthetic_calib), "--model", str(out / "model.pt"), "--presses",
+                 "all"]) == 0
+    assert "warning: skipped 9.500mm/0: unreliable label: no contact" in capsys.readouterr().out
+
+
+def test_train_without_a_held_out_press_says_so(synthetic_calib, tmp_path, capsys):
+    from .conftest import SYNTHETIC_PRESSES, write_calibration_folder
+
+    calib = write_calibration_folder(tmp_path / "one", SYNTHETIC_PRESSES[:1])
+    out = tmp_path / "m"
+    assert main(["calibrate", "train", str(calib), "--out", str(out), "--epochs", "1", "--hidden", "4",
+                 "--restarts", "1"]) == 0
+    text = capsys.readouterr().out
+    assert "warning: only 1 usable presses" in text
+    assert "warning: no press is held out for testing: evaluation.json stays empty" in text
+    assert json.loads((out / "evaluation.json").read_text()) == {}
+    assert main(["calibrate", "evaluate", str(calib), "--model", str(out / "model.pt")]) == 2
+    assert "trained with no press held out: evaluate it with --presses all" in capsys.readouterr().err
