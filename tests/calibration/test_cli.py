@@ -119,6 +119,13 @@ def test_collect_with_a_fake_sensor(tmp_path, monkeypatch):
     assert abs(lb.cx - 150) < 1 and abs(lb.cy - 110) < 1 and abs(lb.radius - 25) < 1.5
 
 
+def _train_tiny(calib, out, capsys) -> str:
+    """``calibrate train`` of a 4-unit MLP for one epoch; what it printed."""
+    assert main(["calibrate", "train", str(calib), "--out", str(out), "--epochs", "1", "--hidden", "4",
+                 "--restarts", "1"]) == 0
+    return capsys.readouterr().out
+
+
 def test_train_skips_a_press_without_contact_and_warns_on_few_presses(synthetic_calib, tmp_path, capsys):
     """A press without contact stopped label, train and evaluate with NoContactError; now
     it is flagged and skipped, with a warning. Six presses are far fewer than advisable."""
@@ -132,9 +139,7 @@ def test_train_skips_a_press_without_contact_and_warns_on_few_presses(synthetic_
     assert main(["calibrate", "label", str(synthetic_calib), "--out", str(tmp_path / "l")]) == 0
     assert "flagged 9.500mm/0: no contact" in capsys.readouterr().out
     out = tmp_path / "m"
-    assert main(["calibrate", "train", str(synthetic_calib), "--out", str(out), "--epochs", "1", "--hidden", "4",
-                 "--restarts", "1"]) == 0
-    text = capsys.readouterr().out
+    text = _train_tiny(synthetic_calib, out, capsys)
     assert "warning: skipping 9.500mm/0: no contact" in text
     assert "warning: only 5 usable presses (4 to train on, 1 held out); about 50" in text
     assert main(["calibrate", "evaluate", str(synthetic_calib), "--model", str(out / "model.pt"), "--presses",
@@ -147,9 +152,7 @@ def test_train_without_a_held_out_press_says_so(synthetic_calib, tmp_path, capsy
 
     calib = write_calibration_folder(tmp_path / "one", SYNTHETIC_PRESSES[:1])
     out = tmp_path / "m"
-    assert main(["calibrate", "train", str(calib), "--out", str(out), "--epochs", "1", "--hidden", "4",
-                 "--restarts", "1"]) == 0
-    text = capsys.readouterr().out
+    text = _train_tiny(calib, out, capsys)
     assert "warning: only 1 usable presses" in text
     assert "warning: no press is held out for testing: evaluation.json stays empty" in text
     assert json.loads((out / "evaluation.json").read_text()) == {}
