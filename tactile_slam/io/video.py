@@ -193,7 +193,8 @@ def write_video(path: str | Path, frames: np.ndarray | torch.Tensor | Iterable, 
 
     Raises:
         InputError: no frames, a frame that is not ``(H, W, 3)`` uint8, frames of
-            different sizes (no file is left behind), or a file OpenCV cannot create.
+            different sizes or of an odd width or height (no file is left behind), or a
+            file OpenCV cannot create.
         Whatever the iterable raises (a camera that disconnects, Ctrl-C): the frames
             written so far are kept as a valid video.
     """
@@ -215,6 +216,10 @@ def write_video(path: str | Path, frames: np.ndarray | torch.Tensor | Iterable, 
                 bad_frame = True
                 raise InputError(f"frame {count} for {path} {problem}")
             if writer is None:
+                if frame.shape[0] % 2 or frame.shape[1] % 2:  # OpenCV's FFV1 writer drops the odd row / column
+                    bad_frame = True
+                    raise InputError(f"frames for {path} are {frame.shape[1]}x{frame.shape[0]}: the lossless video "
+                                     "needs an even width and height (resize or crop the frames first)")
                 size = (frame.shape[1], frame.shape[0])
                 writer = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"FFV1"), float(fps), size)
                 if not writer.isOpened():

@@ -48,6 +48,14 @@ class TestWriteVideo:
             write_video(tmp_path / "v.avi", bad, fps=25)
         assert not (tmp_path / "v.avi").exists()
 
+    @pytest.mark.parametrize("shape", [(23, 32), (24, 31), (239, 321)])
+    def test_odd_sizes_are_refused_not_cropped(self, tmp_path, shape):
+        """OpenCV's FFV1 writer would drop the odd row or column, so the video would not
+        read back as written."""
+        with pytest.raises(InputError, match=f"{shape[1]}x{shape[0]}: the lossless video needs an even"):
+            write_video(tmp_path / "v.avi", np.zeros((2, *shape, 3), np.uint8), fps=25)
+        assert not (tmp_path / "v.avi").exists()
+
     def test_source_error_keeps_frames_written(self, tmp_path, frames):
         def disconnecting():
             yield from frames[:5]
