@@ -153,6 +153,7 @@ class OfflinePipeline:
         self.options = replace(self.options, device=resolve_device(self.options.device))
         self.visualizer = visualizer or NullVisualizer()
         self._outputs_cleared = False
+        self._background_suspect = False  # the stream's background window was touched
 
     def _clear_outputs(self) -> None:
         """Remove an earlier run's outputs from the output folder (:func:`clear_run_outputs`),
@@ -184,6 +185,7 @@ class OfflinePipeline:
             stack = torch.cat([b.bgr for b in window]).numpy()
             background = mean_background(stack[:n])
             if n >= 2 and not check_background(stack[:n]).ok:
+                self._background_suspect = True
                 warnings.warn(f"{self.source}: the background frames differ; was the gel touched?", stacklevel=2)
             used = n - sum(len(b) for b in window[:-1])
             rest = window[-1]._map(lambda x: x[used:]) if used < len(window[-1]) else None
@@ -300,7 +302,11 @@ class OfflinePipeline:
         if n == 0 and error is not None:  # stopped before the first frame: nothing to write
             raise error
         if n and contact_frames == 0 and error is None:
-            raise InputError(f"{self.source}: no frame of {n} is in contact: nothing to track")
+            check = getattr(self.source, "background_check", None)
+            touched = self._background_suspect or (check is not None and not check.ok)
+            hint = (f"; the first {self.config.sensor.background_frames} frames, taken as the background, differ: "
+                    "if the gel was touched from the start, give the recording a background.png") if touched else ""
+            raise InputError(f"{self.source}: no frame of {n} is in contact: nothing to track{hint}")
         self._clear_outputs()
         out.mkdir(parents=True, exist_ok=True)
         # poses are indexed by video index: rows for skipped frames (background window) stay NaN

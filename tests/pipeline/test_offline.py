@@ -196,6 +196,23 @@ def test_greyscale_frames_are_warned_about(tmp_path):
     assert is_grey(np.full((4, 4, 3), 77.0)) and not is_grey(colour)
 
 
+def test_no_contact_after_a_touched_background_says_why(tmp_path):
+    """A video pressed from its first frame: the background window holds the contact, so
+    every later frame matches it; the error points at the background, not at the scan."""
+    from tactile_slam.io.video import VideoSource, write_video
+    from tactile_slam.sim.episode import synthetic_background
+
+    bg = synthetic_background((240, 320)).astype(np.int16)
+    pressed = bg.copy()
+    pressed[100:140, 140:180] += 40
+    frames = [bg] * 3 + [pressed] * 12  # touched at frame 3, inside the 10-frame window
+    write_video(tmp_path / "v.avi", np.clip(np.stack(frames), 0, 255).astype(np.uint8), 25.0)
+    with pytest.warns(UserWarning, match="was the gel touched"):
+        with pytest.raises(InputError, match="taken as the background, differ.*background.png"):
+            OfflinePipeline(VideoSource(tmp_path / "v.avi"), Config(), tmp_path / "out",
+                            RunOptions(progress=False, mesh=False)).run()
+
+
 def test_cli_bad_inputs(tmp_path, capsys):
     assert main(["run", str(tmp_path / "missing"), "--out", str(tmp_path / "o1")]) == 2
     assert "not found" in capsys.readouterr().err
