@@ -176,6 +176,9 @@ def _frame_problem(frame: np.ndarray, size: tuple[int, int] | None) -> str | Non
         return f"must be (H, W, 3) uint8, got {frame.shape} {frame.dtype}"
     if size is not None and (frame.shape[1], frame.shape[0]) != size:
         return f"is {frame.shape[1]}x{frame.shape[0]}, earlier frames are {size[0]}x{size[1]}"
+    if frame.shape[0] % 2 or frame.shape[1] % 2:  # OpenCV's FFV1 writer drops the odd row / column
+        return (f"is {frame.shape[1]}x{frame.shape[0]}: the lossless video needs an even width and height "
+                "(resize or crop the frames first)")
     return None
 
 
@@ -216,10 +219,6 @@ def write_video(path: str | Path, frames: np.ndarray | torch.Tensor | Iterable, 
                 bad_frame = True
                 raise InputError(f"frame {count} for {path} {problem}")
             if writer is None:
-                if frame.shape[0] % 2 or frame.shape[1] % 2:  # OpenCV's FFV1 writer drops the odd row / column
-                    bad_frame = True
-                    raise InputError(f"frames for {path} are {frame.shape[1]}x{frame.shape[0]}: the lossless video "
-                                     "needs an even width and height (resize or crop the frames first)")
                 size = (frame.shape[1], frame.shape[0])
                 writer = cv2.VideoWriter(str(path), cv2.CAP_FFMPEG, cv2.VideoWriter_fourcc(*"FFV1"), float(fps), size)
                 if not writer.isOpened():

@@ -7,7 +7,6 @@ outputs described in :mod:`tactile_slam.pipeline.outputs`.
 
 from __future__ import annotations
 
-import shutil
 import time
 import warnings
 from dataclasses import dataclass, field, replace
@@ -24,10 +23,10 @@ from tactile_slam.eval.trajectory import write_tum
 from tactile_slam.geometry.frame import Frame, FrameBuilder, InputError
 from tactile_slam.io.dataset import FrameBatch, iter_batches
 from tactile_slam.io.frames import FrameSource
-from tactile_slam.io.scan import BackgroundWarning, check_background, is_grey, mean_background
+from tactile_slam.io.scan import BackgroundCheck, BackgroundWarning, check_background, is_grey, mean_background
 from tactile_slam.pipeline.odometry import OdometryMap
-from tactile_slam.pipeline.outputs import (check_output_folder, frame_poses, main_group, main_group_poses,
-                                          write_frames_csv, write_json)
+from tactile_slam.pipeline.outputs import (check_output_folder, clear_run_outputs, frame_poses, main_group,
+                                          main_group_poses, write_frames_csv, write_json)
 from tactile_slam.pipeline.visualizer import NullVisualizer
 from tactile_slam.recon import ReconError, TriMesh, reconstruct
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
@@ -70,27 +69,6 @@ class RunOptions:
     batch_size: int = 8
     progress: bool = True
     mesh: bool = True
-
-
-# what a run (and `tactile-slam eval` of it) writes into its folder; a new run into the same
-# folder removes those it does not write again, so nothing of an earlier run is read as its
-RUN_OUTPUTS = ("poses.npy", "poses_by_group.npy", "frame_group.npy", "trajectory_tum.txt", "frames.csv",
-               "keyframes.json", "stats.json", "config.yaml", "loops.json", "loops_held.json", "pose_graph.g2o",
-               "pose_graph.png", "mesh_fused.ply", "mesh.ply", "mesh.png", "metrics.json", "tracking_error.png")
-RUN_OUTPUT_DIRS = ("groups",)
-
-
-def clear_run_outputs(out: Path) -> list[str]:
-    """Remove an earlier run's :data:`RUN_OUTPUTS` and :data:`RUN_OUTPUT_DIRS` from ``out``
-    (other files stay); returns the names removed."""
-    removed = [name for name in RUN_OUTPUTS if (out / name).is_file()]
-    for name in removed:
-        (out / name).unlink()
-    for name in RUN_OUTPUT_DIRS:
-        if (out / name).is_dir():
-            shutil.rmtree(out / name)
-            removed.append(name + "/")
-    return removed
 
 
 @dataclass
@@ -153,7 +131,7 @@ class OfflinePipeline:
         self.options = replace(self.options, device=resolve_device(self.options.device))
         self.visualizer = visualizer or NullVisualizer()
         self._outputs_cleared = False
-        self._background_suspect = False  # the stream's background window was touched
+        self._window_check: BackgroundCheck | None = None  # of a stream's background window
 
     def _clear_outputs(self) -> None:
         """Remove an earlier run's outputs from the output folder (:func:`clear_run_outputs`),
@@ -184,12 +162,12 @@ class OfflinePipeline:
                 window.append(nxt)
             stack = torch.cat([b.bgr for b in window]).numpy()
             background = mean_background(stack[:n])
-            if n >= 2 and not check_background(stack[:n]).ok:
-                self._background_suspect = True
+            self._window_check = check_background(stack[:n]) if n >= 2 else None
+            if self._window_check is not None and not self._window_check.ok:
                 warnings.warn(f"{self.source}: the background frames differ; was the gel touched?", stacklevel=2)
             used = n - sum(len(b) for b in window[:-1])
             rest = window[-1]._map(lambda x: x[used:]) if used < len(window[-1]) else None
-        if is_grey(np.asarray(background)):
+        if is_grey(background):
             warnings.warn(f"{self.source}: the frames are greyscale (B = G = R); the calibration model decodes the "
                           "sensor's colour lighting, so their gradients and poses will be wrong", BackgroundWarning,
                           stacklevel=2)
@@ -302,8 +280,8 @@ class OfflinePipeline:
         if n == 0 and error is not None:  # stopped before the first frame: nothing to write
             raise error
         if n and contact_frames == 0 and error is None:
-            check = getattr(self.source, "background_check", None)
-            touched = self._background_suspect or (check is not None and not check.ok)
+            check = getattr(self.source, "background_check", None) or self._window_check
+            touched = check is not None and not check.ok
             hint = (f"; the first {self.config.sensor.background_frames} frames, taken as the background, differ: "
                     "if the gel was touched from the start, give the recording a background.png") if touched else ""
             raise InputError(f"{self.source}: no frame of {n} is in contact: nothing to track{hint}")

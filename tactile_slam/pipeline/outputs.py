@@ -14,6 +14,9 @@ Output folder (stable names; see ``docs/outputs.md``):
   became a keyframe, and the quality of its registration (CCS, SCR, conditioning).
 * ``keyframes.json``, ``stats.json``, ``config.yaml``.
 
+A new run into a folder removes every :data:`RUN_OUTPUTS` file and :data:`RUN_OUTPUT_DIRS`
+folder of an earlier one (:func:`clear_run_outputs`), so none is read as the new run's.
+
 Output locations are checked before any work (:func:`check_output_folder`,
 :func:`check_output_file`): a run must not compute for minutes and then find that its
 results have nowhere to go. Nothing is created by the checks.
@@ -23,12 +26,32 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 
+
+# what a run (and `tactile-slam eval` of it) writes into its folder
+RUN_OUTPUTS = ("poses.npy", "poses_by_group.npy", "frame_group.npy", "trajectory_tum.txt", "frames.csv",
+               "keyframes.json", "stats.json", "config.yaml", "loops.json", "loops_held.json", "pose_graph.g2o",
+               "pose_graph.png", "mesh_fused.ply", "mesh.ply", "mesh.png", "metrics.json", "tracking_error.png")
+RUN_OUTPUT_DIRS = ("groups",)
+
+
+def clear_run_outputs(out: Path) -> list[str]:
+    """Remove an earlier run's :data:`RUN_OUTPUTS` and :data:`RUN_OUTPUT_DIRS` from ``out``
+    (other files stay); returns the names removed."""
+    removed = [name for name in RUN_OUTPUTS if (out / name).is_file()]
+    for name in removed:
+        (out / name).unlink()
+    for name in RUN_OUTPUT_DIRS:
+        if (out / name).is_dir():
+            shutil.rmtree(out / name)
+            removed.append(name + "/")
+    return removed
 
 def frame_poses(
     keyframe_of: np.ndarray,
