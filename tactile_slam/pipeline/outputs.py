@@ -34,10 +34,11 @@ import numpy as np
 import torch
 
 
-# what a run (and `tactile-slam eval` of it) writes into its folder
+# what a run (and `tactile-slam eval` or `demo` of it) writes into its folder
 RUN_OUTPUTS = ("poses.npy", "poses_by_group.npy", "frame_group.npy", "trajectory_tum.txt", "frames.csv",
                "keyframes.json", "stats.json", "config.yaml", "loops.json", "loops_held.json", "pose_graph.g2o",
-               "pose_graph.png", "mesh_fused.ply", "mesh.ply", "mesh.png", "metrics.json", "tracking_error.png")
+               "pose_graph.png", "mesh_fused.ply", "mesh.ply", "mesh.png", "metrics.json", "tracking_error.png",
+               "report.png")
 RUN_OUTPUT_DIRS = ("groups",)
 
 
