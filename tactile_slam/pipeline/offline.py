@@ -177,6 +177,8 @@ class OfflinePipeline:
                 f"no calibration model for sensor {self.config.sensor.name!r}: pass --model or set sensor.model_path"
             )
         model, meta = load_model(path, self.options.device)
+        # config.yaml names the model this run decoded with, so it reproduces the run (also with --model)
+        self.config = replace(self.config, sensor=replace(self.config.sensor, model_path=str(Path(path).resolve())))
         mismatch = model_sensor_mismatch(meta, self.config.sensor)
         if mismatch is not None:
             warnings.warn(f"{path}: {mismatch}; its gradients will be wrong (calibrate this sensor: "

@@ -494,3 +494,33 @@ def test_cli_run_with_a_config_file(tracking_episode, tmp_path, capsys):
                  "--config", str(bad)]) == 2
     assert "keyframe_edge" in capsys.readouterr().err
     assert not (tmp_path / "bad_run").exists()
+
+
+def test_config_yaml_names_the_model_a_run_decoded_with(tmp_path, capsys):
+    """A run given ``--model`` writes that model into ``config.yaml``: the file alone
+    reproduces the run's poses (before, it named no model and a re-run decoded with the
+    shipped one)."""
+    import shutil
+
+    from tactile_slam.sim.episode import DEFAULT_COLOUR_MODEL
+
+    shipped = Config().sensor.resolved_model_path()
+    if shipped is None or not DEFAULT_COLOUR_MODEL.is_file():
+        pytest.skip("needs the shipped calibration and colour models")
+    episode = tmp_path / "episode"
+    simulate_episode(episode, SimulationSettings(object="lime", kind="tracking", frames=24, level="image"))
+    model = tmp_path / "models" / "mine.pt"
+    model.parent.mkdir()
+    shutil.copy(shipped, model)
+    assert main(["run", str(episode), "--out", str(tmp_path / "a"), "--model", str(model), "--method", "nf-kf",
+                 "--no-mesh"]) == 0
+    written = Config.from_yaml(tmp_path / "a" / "config.yaml")
+    assert written.sensor.model_path == str(model.resolve())
+    model.rename(tmp_path / "models" / "moved.pt")  # the re-run must read the file the config names
+    assert main(["run", str(episode), "--out", str(tmp_path / "b"), "--config", str(tmp_path / "a" / "config.yaml"),
+                 "--method", "nf-kf", "--no-mesh"]) == 2
+    assert "calibration model not found" in capsys.readouterr().err and not (tmp_path / "b").exists()
+    (tmp_path / "models" / "moved.pt").rename(model)
+    assert main(["run", str(episode), "--out", str(tmp_path / "b"), "--config", str(tmp_path / "a" / "config.yaml"),
+                 "--method", "nf-kf", "--no-mesh"]) == 0
+    np.testing.assert_array_equal(np.load(tmp_path / "a" / "poses.npy"), np.load(tmp_path / "b" / "poses.npy"))
