@@ -19,6 +19,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -160,6 +161,20 @@ class CurvatureConfig:
     clip: float = 0.7
 
 
+TRACKING_INITS = ("constant_position", "constant_velocity")
+"""``TrackingConfig.init`` values."""
+KEYFRAME_EDGES = ("forward", "reverse", "midpoint")
+"""``TrackingConfig.keyframe_edge`` values."""
+LOOP_DETECTOR_MODES = ("full", "only_sift", "only_nf", "image_sift")
+"""``LoopConfig.mode`` values (method.md 9.5)."""
+FEATURE_MAPS = ("laplacian", "gaussian")
+"""``LoopConfig.feature_map`` values: the curvature map SIFT runs on."""
+SIFT_BACKENDS = ("opencv", "kornia")
+"""``LoopConfig.sift_backend`` values."""
+MERGE_DISTINCT = ("queries", "both")
+"""``LoopConfig.merge_distinct`` values: the loop gate's rules for independent support."""
+ROBUST_MODES = ("none", "huber", "cauchy", "gnc")
+"""``PoseGraphConfig.robust`` values."""
 JACOBIAN_KINDS = ("analytic", "autograd")
 """``NormalFlowConfig.jacobian`` values (``registration.jacobian``'s closed form and torch.func)."""
 SAMPLE_SELECTIONS = ("spread", "topk", "threshold", "random")
@@ -260,6 +275,12 @@ class NormalFlowConfig:
             raise ConfigError(f"normalflow.jacobian must be one of {JACOBIAN_KINDS}, got {self.jacobian!r}")
         if self.max_iters < 1 or self.min_iters < 1 or self.coarse_max_iters < 1:
             raise ConfigError("normalflow.max_iters, min_iters and coarse_max_iters must be >= 1")
+        if self.min_iters > self.max_iters:
+            raise ConfigError(f"normalflow.min_iters ({self.min_iters}) must be <= max_iters ({self.max_iters})")
+        check_ranges(self, "normalflow")
+        if self.n_samples is not None and self.n_samples < self.min_shared:
+            raise ConfigError(f"normalflow.n_samples ({self.n_samples}) must be >= normalflow.min_shared "
+                              f"({self.min_shared}): with fewer samples every registration fails")
         for name in ("cpu_chunk_samples", "stall_check_iters", "lm_damping"):
             if getattr(self, name) < 0:
                 raise ConfigError(f"normalflow.{name} must be >= 0, got {getattr(self, name)}")
@@ -574,6 +595,11 @@ class Config:
             raise ConfigError(f"config must be a mapping, got {type(data).__name__}")
         if any(k in data for k in ("device_config", "contact_mask_config", "gelslam_config")):
             data = _from_gelslam_layout(data)
+        sensor = data.get("sensor")
+        if isinstance(sensor, dict) and "ppmm" in sensor:  # GelSLAM's name for mm_per_px, also in our layout
+            if "mm_per_px" in sensor:
+                raise ConfigError("sensor.ppmm and sensor.mm_per_px are the same setting: give one")
+            data = {**data, "sensor": {("mm_per_px" if k == "ppmm" else k): v for k, v in sensor.items()}}
         cfg = cls()
         for name, section in data.items():
             if not hasattr(cfg, name) or not dataclasses.is_dataclass(getattr(cfg, name)):
@@ -594,7 +620,7 @@ class Config:
         if not path.is_file():
             raise ConfigError(f"config file not found: {path}")
         try:
-            data = yaml.safe_load(path.read_text()) or {}
+            data = yaml.load(path.read_text(), Loader=_YamlLoader) or {}
         except yaml.YAMLError as exc:
             raise ConfigError(f"config file {path} is not valid YAML: {exc}") from exc
         return cls.from_dict(data, base_dir=path.parent)
@@ -609,17 +635,35 @@ class Config:
             raise ConfigError(f"sensor.fps must be > 0, got {s.fps}")
         if s.background_frames < 1:
             raise ConfigError("sensor.background_frames must be >= 1")
-        if self.contact.given_masks not in GIVEN_MASKS:
-            raise ConfigError(f"contact.given_masks must be one of {GIVEN_MASKS}, got {self.contact.given_masks!r}")
         if self.curvature.blur_ksize % 2 != 1:
             raise ConfigError("curvature.blur_ksize must be odd")
-        self.normalflow.check()  # the factors are checked against the frames' size when they register
-        for key, rule, text in _RANGES:
+        if min(s.width, s.height) < max(self.curvature.blur_ksize, 2):
+            raise ConfigError(f"sensor size {s.width}x{s.height} is smaller than the curvature blur "
+                              f"(curvature.blur_ksize {self.curvature.blur_ksize})")
+        for key, values in _CHOICES:
             section, name = key.split(".")
             value = getattr(getattr(self, section), name)
-            if value is not None and not rule(value):
-                raise ConfigError(f"{key} must be {text}, got {value!r}")
+            if value not in values:
+                raise ConfigError(f"{key} must be one of {values}, got {value!r}")
+        self.normalflow.check()  # the factors are checked against the frames' size when they register
+        for section in ("contact", "curvature", "tracking", "loop", "posegraph", "recon"):
+            check_ranges(getattr(self, section), section)
+        for key in ("normalflow.coarse_factors", "normalflow.fallback_factors", "tracking.fallback_factors"):
+            section, name = key.split(".")
+            bad = [f for f in getattr(getattr(self, section), name) if f < 2 or s.width % f or s.height % f]
+            if bad:
+                raise ConfigError(f"{key} must be integers >= 2 that divide the sensor size {s.width}x{s.height}, "
+                                  f"got {bad[0]}")
         self.recon.check()
+
+
+class _YamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader that also reads exponents without a dot (``1e-5``) as floats,
+    as YAML 1.2 does; PyYAML's YAML 1.1 rules read them as strings."""
+
+
+_YamlLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"), list("-+0123456789"))
 
 
 def _rule(low: float | None = None, high: float | None = None, open_low: bool = False,
@@ -647,7 +691,19 @@ _RANGES = tuple((key, *rule) for key, rule in (
     ("tracking.ccs_threshold", _UNIT), ("tracking.scr_threshold", _UNIT),
     ("loop.ccs_threshold", _UNIT), ("loop.scr_threshold", _UNIT), ("loop.ransac_iterations", _AT_LEAST_ONE),
     ("loop.ransac_threshold_px", _POSITIVE), ("loop.ransac_confidence", _rule(0, 1, True, True)),
-    ("loop.coverage_overlap_mm2", _NON_NEGATIVE),
+    ("loop.coverage_overlap_mm2", _NON_NEGATIVE), ("loop.sift_octave_layers", _AT_LEAST_ONE),
+    ("loop.sift_contrast_threshold", _NON_NEGATIVE), ("loop.sift_max_features", _AT_LEAST_ONE),
+    ("loop.ransac_refine_iters", _NON_NEGATIVE), ("loop.ambiguity_ratio", _POSITIVE),
+    ("loop.gate_margin_mm", _NON_NEGATIVE), ("loop.max_init_rot_deg", _NON_NEGATIVE),
+    ("loop.max_init_trans_mm", _NON_NEGATIVE), ("loop.coverage_depth_gate_mm", _POSITIVE),
+    ("loop.retrieval_neighbours", _AT_LEAST_ONE), ("loop.retrieval_min_votes", _AT_LEAST_ONE),
+    ("loop.retrieval_exact_max", _NON_NEGATIVE), ("loop.drift_base_rot_deg", _NON_NEGATIVE),
+    ("loop.drift_base_trans_mm", _NON_NEGATIVE), ("loop.drift_rot_deg_per_mm", _NON_NEGATIVE),
+    ("loop.drift_trans_mm_per_mm", _NON_NEGATIVE), ("loop.doubt_factor", _rule(1)),
+    ("loop.merge_min_pairs", _AT_LEAST_ONE), ("loop.decoded_tilt_sigma_deg", _POSITIVE),
+    ("loop.decoded_max_tilt_deg", _POSITIVE), ("loop.max_asymmetry_deg", _NON_NEGATIVE),
+    ("loop.max_asymmetry_mm", _NON_NEGATIVE), ("loop.probes", _NON_NEGATIVE),
+    ("posegraph.sigma_rot_rad", _POSITIVE), ("posegraph.sigma_trans_m", _POSITIVE),
     ("posegraph.max_iters", _AT_LEAST_ONE), ("posegraph.rel_tol", _NON_NEGATIVE),
     ("posegraph.abs_tol", _NON_NEGATIVE), ("posegraph.lambda_init", _POSITIVE),
     ("posegraph.lambda_factor", _rule(1, open_low=True)), ("posegraph.lambda_max", _POSITIVE),
@@ -659,10 +715,31 @@ _RANGES = tuple((key, *rule) for key, rule in (
     ("recon.poisson_max_points", _AT_LEAST_ONE), ("recon.trim_density_quantile", _rule(0, 1, open_high=True)),
     ("recon.trim_distance_mm", _NON_NEGATIVE), ("recon.min_weight", _rule(0, 1, open_high=True)),
 ))
-"""Ranges checked at load (:meth:`Config.validate`), ``None`` values exempt: settings no
-constructor checks before the frames are read (the tracker's and the loop detector's
+"""Ranges checked at load (:meth:`Config.validate`; the ``normalflow`` ones also by
+:meth:`NormalFlowConfig.check`, which registration calls), ``None`` values exempt: settings
+no constructor checks before the frames are read (the tracker's and the loop detector's
 own checks run when a pipeline is built; these would otherwise fail late, e.g. meshing
-after the whole run, or not at all)."""
+after the whole run, or not at all). NaN fails every range."""
+
+_CHOICES = (
+    ("contact.given_masks", GIVEN_MASKS), ("tracking.init", TRACKING_INITS),
+    ("tracking.keyframe_edge", KEYFRAME_EDGES), ("loop.mode", LOOP_DETECTOR_MODES),
+    ("loop.feature_map", FEATURE_MAPS), ("loop.sift_backend", SIFT_BACKENDS),
+    ("loop.merge_distinct", MERGE_DISTINCT), ("posegraph.robust", ROBUST_MODES),
+)
+"""String settings and their allowed values, checked at load (:meth:`Config.validate`;
+``normalflow``'s by :meth:`NormalFlowConfig.check`)."""
+
+
+def check_ranges(settings: Any, section: str) -> None:
+    """Raise :class:`ConfigError` naming the first setting of ``section`` (a config
+    dataclass) outside its range in :data:`_RANGES`."""
+    for key, rule, text in _RANGES:
+        where, name = key.split(".")
+        if where == section:
+            value = getattr(settings, name)
+            if value is not None and not rule(value):
+                raise ConfigError(f"{key} must be {text}, got {value!r}")
 
 
 def _update(obj: Any, values: dict[str, Any], section: str) -> Any:
@@ -708,8 +785,11 @@ def _typed(value: Any, hint: Any, where: str) -> Any:
 
 def _from_gelslam_layout(data: dict[str, Any]) -> dict[str, Any]:
     """Translate the public GelSLAM config.yaml layout into this project's sections."""
+    for k in data:
+        if k not in ("device_config", "contact_mask_config", "gelslam_config"):
+            raise ConfigError(f"unknown config section {k!r} in GelSLAM layout")
     out: dict[str, dict[str, Any]] = {"sensor": {}, "contact": {}, "tracking": {}, "loop": {}}
-    dev = data.get("device_config") or {}
+    dev = _gelslam_section(data, "device_config")
     mapping = {
         "device_name": "name",
         "ppmm": "mm_per_px",  # misnamed upstream: it is millimetres per pixel
@@ -724,8 +804,9 @@ def _from_gelslam_layout(data: dict[str, Any]) -> dict[str, Any]:
         if k not in mapping:
             raise ConfigError(f"unknown key device_config.{k}")
         out["sensor"][mapping[k]] = v
-    mm_per_px = float(out["sensor"].get("mm_per_px", SensorConfig.mm_per_px))
-    cm = data.get("contact_mask_config") or {}
+    mm_per_px = (_gelslam_number(dev["ppmm"], "device_config.ppmm") if "ppmm" in dev
+                 else SensorConfig.mm_per_px)
+    cm = _gelslam_section(data, "contact_mask_config")
     for k, v in cm.items():
         if k == "color_dist_threshold":
             out["contact"]["color_dist_threshold"] = v
@@ -733,27 +814,40 @@ def _from_gelslam_layout(data: dict[str, Any]) -> dict[str, Any]:
             out["contact"]["height_threshold_mm"] = v
         else:
             raise ConfigError(f"unknown key contact_mask_config.{k}")
-    gs = data.get("gelslam_config") or {}
-    track = gs.get("track_config") or {}
-    for k, v in track.items():
+    gs = _gelslam_section(data, "gelslam_config")
+    for k in gs:
+        if k not in ("track_config", "pose_graph_config"):
+            raise ConfigError(f"unknown key gelslam_config.{k}")
+    for k, v in _gelslam_section(gs, "track_config", "gelslam_config.").items():
         if k == "contact_threshold":  # pixels upstream; stored as an area here
-            out["contact"]["min_contact_mm2"] = float(v) * mm_per_px**2
+            out["contact"]["min_contact_mm2"] = _gelslam_number(v, f"gelslam_config.track_config.{k}") * mm_per_px**2
         elif k in ("scr_threshold", "ccs_threshold"):
             out["tracking"][k] = v
         else:
             raise ConfigError(f"unknown key gelslam_config.track_config.{k}")
-    pg = gs.get("pose_graph_config") or {}
-    for k, v in pg.items():
+    for k, v in _gelslam_section(gs, "pose_graph_config", "gelslam_config.").items():
         if k == "coverage_graph_overlap_threshold":
-            out["loop"]["coverage_overlap_mm2"] = float(v) * mm_per_px**2
+            out["loop"]["coverage_overlap_mm2"] = (
+                _gelslam_number(v, f"gelslam_config.pose_graph_config.{k}") * mm_per_px**2)
         elif k in ("scr_threshold", "ccs_threshold", "min_sift_inliers"):
             out["loop"][k] = v
         else:
             raise ConfigError(f"unknown key gelslam_config.pose_graph_config.{k}")
-    for k in data:
-        if k not in ("device_config", "contact_mask_config", "gelslam_config"):
-            raise ConfigError(f"unknown config section {k!r} in GelSLAM layout")
     return out
+
+
+def _gelslam_section(data: dict[str, Any], name: str, prefix: str = "") -> dict[str, Any]:
+    """``data[name]`` as a mapping (``{}`` when absent or empty); :class:`ConfigError` naming it otherwise."""
+    section = data.get(name) or {}
+    if not isinstance(section, dict):
+        raise ConfigError(f"{prefix}{name} must be a mapping, got {section!r}")
+    return section
+
+
+def _gelslam_number(value: Any, where: str) -> float:
+    """A GelSLAM setting that is converted before typing (``ppmm``, pixel counts) as a
+    finite float; :class:`ConfigError` naming the key otherwise."""
+    return _typed(value, float, where)
 
 
 def gelsight_mini() -> Config:

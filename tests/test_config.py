@@ -112,13 +112,93 @@ def test_own_layout_roundtrip(tmp_path):
         ("loop: {ransac_confidence: 1}", r"loop.ransac_confidence must be in \(0, 1\)"),
         ("recon: {poisson_threads: 0}", r"recon.poisson_threads must be -1 \(every core\) or an integer >= 1"),
         ("contact: {given_masks: loose}", r"contact.given_masks must be one of \('final', 'region'\), got 'loose'"),
+        # settings that crashed mid-run in OpenCV, or silently emptied the run, before the first frame
+        ("loop: {sift_octave_layers: 0}", r"loop.sift_octave_layers must be >= 1, got 0"),
+        ("loop: {ransac_refine_iters: -1}", r"loop.ransac_refine_iters must be >= 0, got -1"),
+        ("loop: {max_init_rot_deg: -1}", r"loop.max_init_rot_deg must be >= 0"),
+        ("loop: {coverage_depth_gate_mm: -1}", r"loop.coverage_depth_gate_mm must be > 0"),
+        ("loop: {ambiguity_ratio: -1}", r"loop.ambiguity_ratio must be > 0"),
+        ("loop: {gate_margin_mm: -1}", r"loop.gate_margin_mm must be >= 0"),
+        ("loop: {min_sift_inliers: 2}", None),  # the detector's own check, when the pipeline is built
+        ("posegraph: {sigma_rot_rad: 0}", r"posegraph.sigma_rot_rad must be > 0, got 0"),
+        ("normalflow: {min_iters: 60}", r"normalflow.min_iters \(60\) must be <= max_iters \(50\)"),
+        ("normalflow: {n_samples: 5}", r"normalflow.n_samples \(5\) must be >= normalflow.min_shared \(10\)"),
+        ("tracking: {fallback_factors: [3]}", r"tracking.fallback_factors must be integers >= 2 that divide the "
+                                              r"sensor size 320x240, got 3"),
+        ("normalflow: {coarse_factors: [7]}", r"normalflow.coarse_factors must be integers >= 2 that divide"),
+        # string settings are checked at load, naming the key
+        ("posegraph: {robust: bogus}", r"posegraph.robust must be one of \('none', 'huber', 'cauchy', 'gnc'\)"),
+        ("loop: {sift_backend: vlfeat}", r"loop.sift_backend must be one of \('opencv', 'kornia'\)"),
+        ("loop: {mode: half}", r"loop.mode must be one of"),
+        ("loop: {feature_map: raw}", r"loop.feature_map must be one of"),
+        ("loop: {merge_distinct: any}", r"loop.merge_distinct must be one of"),
+        ("tracking: {init: guess}", r"tracking.init must be one of"),
+        ("tracking: {keyframe_edge: both}", r"tracking.keyframe_edge must be one of"),
+        ("sensor: {width: 4, height: 4}", r"sensor size 4x4 is smaller than the curvature blur"),
+        ("sensor: {ppmm: 0.05, mm_per_px: 0.05}", r"sensor.ppmm and sensor.mm_per_px are the same setting"),
+        ("normalflow: {trans_tol_m: '1e-5'}", r"normalflow.trans_tol_m must be of type float, got '1e-5'"),  # quoted
+        # the GelSLAM layout: misspelt sub-sections and values of the wrong type name their key
+        ("gelslam_config: {track_confg: {ccs_threshold: 0.5}}", r"unknown key gelslam_config.track_confg"),
+        ("gelslam_config: [1]", r"gelslam_config must be a mapping, got \[1\]"),
+        ("device_config: [1]", r"device_config must be a mapping"),
+        ("gelslam_config: {track_config: 3}", r"gelslam_config.track_config must be a mapping"),
+        ("device_config: {ppmm: [1]}", r"device_config.ppmm must be of type float, got \[1\]"),
+        ("device_config: {ppmm: abc}", r"device_config.ppmm must be of type float, got 'abc'"),
+        ("gelslam_config: {track_config: {contact_threshold: '500'}}",
+         r"gelslam_config.track_config.contact_threshold must be of type float, got '500'"),
+        ("gelslam_config: {pose_graph_config: {coverage_graph_overlap_threshold: .nan}}",
+         r"coverage_graph_overlap_threshold must be a finite number"),
     ],
 )
 def test_bad_configs(tmp_path, text, match):
     p = tmp_path / "c.yaml"
     p.write_text(text)
+    if match is None:
+        Config.from_yaml(p)
+        return
     with pytest.raises(ConfigError, match=match):
         Config.from_yaml(p)
+
+
+def test_the_loop_detector_names_each_bad_setting():
+    from tactile_slam.loop.detector import LoopDetector, LoopError
+
+    for name, value in (("min_sift_inliers", 2), ("max_candidates", 0), ("verify_batch", 0)):
+        cfg = Config()
+        setattr(cfg.loop, name, value)
+        with pytest.raises(LoopError, match=f"loop.{name} must be >= "):
+            LoopDetector(cfg)
+
+
+def test_exponents_without_a_dot_are_floats(tmp_path):
+    """PyYAML reads ``1e-5`` as a string (YAML 1.1); the defaults are written that way,
+    so the loader reads it as YAML 1.2 does."""
+    p = tmp_path / "c.yaml"
+    p.write_text("normalflow: {trans_tol_m: 1e-5, rot_tol: 2E-4, degenerate_eig: +1e-7}\n"
+                 "posegraph: {lambda_max: 1e5, sigma_trans_m: 1.5e-4}\nsensor: {name: 1e3x}\n")
+    cfg = Config.from_yaml(p)
+    assert (cfg.normalflow.trans_tol_m, cfg.normalflow.rot_tol, cfg.normalflow.degenerate_eig) == (1e-5, 2e-4, 1e-7)
+    assert (cfg.posegraph.lambda_max, cfg.posegraph.sigma_trans_m) == (1e5, 1.5e-4)
+    assert cfg.sensor.name == "1e3x"
+    cfg.save(p)
+    assert Config.from_yaml(p).to_dict() == cfg.to_dict()
+
+
+def test_ppmm_is_an_alias_of_mm_per_px(tmp_path):
+    """method.md 1.1: GelSLAM's ``ppmm`` (millimetres per pixel) also in our layout."""
+    p = tmp_path / "c.yaml"
+    p.write_text("sensor: {ppmm: 0.05}\n")
+    assert Config.from_yaml(p).sensor.mm_per_px == 0.05
+
+
+def test_normalflow_config_checks_its_ranges_without_the_loader():
+    """Registration checks a NormalFlowConfig built in Python: a NaN threshold made every
+    pair fail, even at CCS 1."""
+    from tactile_slam.config import NormalFlowConfig
+
+    with pytest.raises(ConfigError, match="normalflow.ccs_threshold must be in"):
+        NormalFlowConfig(ccs_threshold=float("nan")).check()
+    NormalFlowConfig().check()
 
 
 def test_values_are_typed(tmp_path):

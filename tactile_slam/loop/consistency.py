@@ -33,6 +33,7 @@ from dataclasses import dataclass
 
 import torch
 
+from tactile_slam.config import MERGE_DISTINCT
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.result import pose_error
 
@@ -171,9 +172,6 @@ class MotionGraph:
         return out
 
 
-DISTINCT = ("queries", "both")  # LoopGate's rules for independent support
-
-
 @dataclass
 class PendingLoop:
     """A verified loop between two groups, waiting for agreement.
@@ -280,8 +278,8 @@ class LoopGate:
                  distinct: str = "queries", cycles: bool = True, trust_repetitive: bool = False) -> None:
         if min_pairs < 1 or doubt_factor < 1.0:
             raise ValueError(f"need min_pairs >= 1 and doubt_factor >= 1, got {min_pairs}, {doubt_factor}")
-        if distinct not in DISTINCT:
-            raise ValueError(f"distinct must be one of {DISTINCT}, got {distinct!r}")
+        if distinct not in MERGE_DISTINCT:
+            raise ValueError(f"distinct must be one of {MERGE_DISTINCT}, got {distinct!r}")
         self.model = model
         self.min_pairs = min_pairs
         self.distinct = distinct

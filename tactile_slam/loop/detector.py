@@ -34,7 +34,7 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
-from tactile_slam.config import Config
+from tactile_slam.config import FEATURE_MAPS, LOOP_DETECTOR_MODES, Config
 from tactile_slam.geometry.frame import CroppedFrame, Frame, window_batch
 from tactile_slam.loop.features import (Features, SiftSettings, curvature_features, gaussian_curvature_features,
                                         image_features)
@@ -51,9 +51,6 @@ from tactile_slam.registration.normalflow import (
 from tactile_slam.registration.result import RegistrationResult
 from tactile_slam.tracking.keyframe import Keyframe
 
-MODES = ("full", "only_sift", "only_nf", "image_sift")
-FEATURE_MAPS = ("laplacian", "gaussian")
-"""``loop.feature_map`` values: the curvature map SIFT runs on."""
 
 
 class LoopError(ValueError):
@@ -166,17 +163,18 @@ class LoopDetector:
     Args:
         config: settings; ``config.loop`` for detection, ``config.normalflow`` for the
             verification (with the loop CCS/SCR thresholds substituted).
-        mode: overrides ``config.loop.mode`` (one of :data:`MODES`).
+        mode: overrides ``config.loop.mode`` (one of :data:`~tactile_slam.config.LOOP_DETECTOR_MODES`).
     """
 
     def __init__(self, config: Config, mode: str | None = None):
         lc = config.loop
         self.config = config
         self.mode = mode or lc.mode
-        if self.mode not in MODES:
-            raise LoopError(f"loop mode must be one of {MODES}, got {self.mode!r}")
-        if lc.min_sift_inliers < 3 or lc.max_candidates < 1 or lc.verify_batch < 1:
-            raise LoopError("loop.min_sift_inliers must be >= 3, max_candidates and verify_batch >= 1")
+        if self.mode not in LOOP_DETECTOR_MODES:
+            raise LoopError(f"loop mode must be one of {LOOP_DETECTOR_MODES}, got {self.mode!r}")
+        for name, least in (("min_sift_inliers", 3), ("max_candidates", 1), ("verify_batch", 1)):
+            if getattr(lc, name) < least:
+                raise LoopError(f"loop.{name} must be >= {least}, got {getattr(lc, name)}")
         if not lc.sift_edge_threshold > 0:
             raise LoopError(f"loop.sift_edge_threshold must be > 0, got {lc.sift_edge_threshold}")
         if lc.feature_map not in FEATURE_MAPS:

@@ -30,10 +30,9 @@ import cv2
 import numpy as np
 import torch
 
+from tactile_slam.config import SIFT_BACKENDS
 from tactile_slam.geometry.curvature import gaussian_curvature
 from tactile_slam.geometry.morphology import erode, mask_bounds, window_around
-
-BACKENDS = ("opencv", "kornia")
 
 
 class FeatureError(ValueError):
@@ -166,8 +165,8 @@ def detect(image: torch.Tensor, contact: torch.Tensor, settings: SiftSettings | 
         :class:`Features` on the CPU; empty when there is no contact or no keypoint.
     """
     s = settings or SiftSettings()
-    if s.backend not in BACKENDS:
-        raise FeatureError(f"SIFT backend must be one of {BACKENDS}, got {s.backend!r}")
+    if s.backend not in SIFT_BACKENDS:
+        raise FeatureError(f"SIFT backend must be one of {SIFT_BACKENDS}, got {s.backend!r}")
     _check_maps(image, contact)
     if image.dtype != torch.uint8:
         raise FeatureError(f"expected a uint8 image, got {image.dtype}")

@@ -28,12 +28,10 @@ import scipy.sparse as sp
 import scipy.sparse.csgraph as csgraph
 import torch
 
-from tactile_slam.config import PoseGraphConfig
+from tactile_slam.config import ROBUST_MODES, PoseGraphConfig
 from tactile_slam.posegraph import robust, se3
 from tactile_slam.posegraph.cholesky import BlockCholesky, FactorError
 from tactile_slam.posegraph.graph import GraphError, PoseGraph
-
-ROBUST_MODES = ("none", "huber", "cauchy", "gnc")
 
 
 class SolverError(ValueError):

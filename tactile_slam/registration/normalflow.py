@@ -154,6 +154,8 @@ def _target_error(what: str) -> RegistrationError:
 
 def _check_config(config: NormalFlowConfig, shape: tuple[int, int] | None = None) -> None:
     """:meth:`NormalFlowConfig.check`, raised as a :class:`RegistrationError`."""
+    if not isinstance(config, NormalFlowConfig):
+        raise RegistrationError(f"expected a NormalFlowConfig (e.g. config.normalflow), got {type(config).__name__}")
     try:
         config.check(shape)
     except ConfigError as exc:

@@ -50,15 +50,12 @@ from typing import Any, Protocol
 
 import torch
 
-from tactile_slam.config import NormalFlowConfig, TrackingConfig, lower_limit
+from tactile_slam.config import KEYFRAME_EDGES, TRACKING_INITS, NormalFlowConfig, TrackingConfig, lower_limit
 from tactile_slam.geometry.frame import Frame, own_maps
 from tactile_slam.posegraph import se3
 from tactile_slam.registration.normalflow import prepare_reference, register_prepared
 from tactile_slam.registration.result import RegistrationResult, pose_error
 from tactile_slam.tracking.keyframe import Keyframe
-
-INIT_MODES = ("constant_position", "constant_velocity")
-EDGE_MODES = ("forward", "reverse", "midpoint")
 
 
 class Registrar(Protocol):
@@ -169,10 +166,10 @@ class Tracker:
     """
 
     def __init__(self, config: TrackingConfig, registrar: Registrar):
-        if config.init not in INIT_MODES:
-            raise ValueError(f"tracking.init must be one of {INIT_MODES}, got {config.init!r}")
-        if config.keyframe_edge not in EDGE_MODES:
-            raise ValueError(f"tracking.keyframe_edge must be one of {EDGE_MODES}, got {config.keyframe_edge!r}")
+        if config.init not in TRACKING_INITS:
+            raise ValueError(f"tracking.init must be one of {TRACKING_INITS}, got {config.init!r}")
+        if config.keyframe_edge not in KEYFRAME_EDGES:
+            raise ValueError(f"tracking.keyframe_edge must be one of {KEYFRAME_EDGES}, got {config.keyframe_edge!r}")
         for name in ("max_deg_per_s", "max_mm_per_s", "keyframe_near_mm", "decoded_max_tilt_deg", "max_tilt_deg",
                      "f2f_check_deg", "f2f_below_conditioning"):
             v = getattr(config, name)

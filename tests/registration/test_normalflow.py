@@ -653,6 +653,10 @@ class TestBadInput:
             register(ref, tars[:1], None, NormalFlowConfig(jacobian="numeric"))
         with pytest.raises(ValueError, match="selection"):
             register(ref, tars[:1], None, NormalFlowConfig(selection="best"))
+        with pytest.raises(RegistrationError, match=r"expected a NormalFlowConfig \(e.g. config.normalflow\), got Config"):
+            register(ref, tars[:1], None, Config())
+        with pytest.raises(RegistrationError, match="normalflow.ccs_threshold must be in"):
+            register(ref, tars[:1], None, NormalFlowConfig(ccs_threshold=float("nan")))
 
 
 def test_coarse_level(scene):
