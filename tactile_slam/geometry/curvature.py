@@ -71,7 +71,9 @@ def _blurred_in_contact(field, finish, gradients: torch.Tensor, contact: torch.T
     """``finish(blur(field(gradients)))`` (``finish`` None: the blurred field), zero outside
     contact and clipped, computed in the window around the batch's contact that every
     contact pixel's full-image value reads (``ksize // 2 + 1`` pixels: the blur's reach
-    plus a central difference's). ``field``: ``(b, h, w, 2)`` -> ``(b, h, w)``."""
+    plus a central difference's), so a frame reads the same alone or in a batch, to the
+    rounding of the dtype (float32 sums in another window order differ by ~1e-8).
+    ``field``: ``(b, h, w, 2)`` -> ``(b, h, w)``."""
     out = torch.zeros(gradients.shape[:3], dtype=gradients.dtype, device=gradients.device)
     box = mask_bounds(contact.any(0))  # of every frame's contact
     if box is None:

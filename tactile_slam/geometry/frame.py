@@ -496,6 +496,10 @@ class FrameBuilder:
             )
         gradients = gradients.to(self.device, torch.float32)
         if contact is not None:
+            if contact.is_floating_point():  # integer masks (0/1, 0/255) count nonzero as contact
+                stray = contact[(contact != 0) & (contact != 1)]  # NaN or fractions: not a mask
+                if stray.numel():
+                    raise InputError(f"float contact masks must be 0 or 1, got values such as {stray[0].item()}")
             contact = contact.to(self.device).bool()
         changed = contact if contact is not None else torch.zeros(gradients.shape[:3], dtype=torch.bool,
                                                                   device=gradients.device)

@@ -137,6 +137,21 @@ class TestFromGradients:
         with pytest.raises(InputError, match="contact masks"):
             FrameBuilder(Config()).from_gradients(torch.zeros(1, 240, 320, 2), contact=torch.zeros(1, 10, 10))
 
+    def test_float_masks_must_be_zero_or_one(self):
+        """A float mask of 0.4 or NaN is no mask; before, ``.bool()`` made both contact.
+        Integer masks count nonzero as contact (0/255 images)."""
+        fb = FrameBuilder(Config())
+        g = central_gradients(spherical_cap()).float()
+        m = torch.zeros(1, 240, 320)
+        m[0, 100:140, 140:180] = 1.0
+        assert torch.equal(fb.from_gradients(g, contact=m).contact, m.bool())
+        assert torch.equal(fb.from_gradients(g, contact=(m * 255).to(torch.uint8)).contact, m.bool())
+        for stray in (0.4, float("nan")):
+            bad = m.clone()
+            bad[0, 0, 0] = stray
+            with pytest.raises(InputError, match="float contact masks must be 0 or 1, got values such as"):
+                fb.from_gradients(g, contact=bad)
+
     def test_numpy_inputs_equal_tensors(self):
         """numpy gradients and masks (e.g. read with np.load) give the tensors' frame."""
         fb = FrameBuilder(Config())
