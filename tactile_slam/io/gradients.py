@@ -19,6 +19,7 @@ it is read.
 
 from __future__ import annotations
 
+import os
 import threading
 import zipfile
 import zlib
@@ -52,7 +53,9 @@ class NpzFrames:
 
     Behaves as far as :class:`GradientSequence` needs like the array: ``shape``,
     ``dtype``, ``ndim``, ``len`` and ``[i]`` (one frame, a fresh ``ndarray``). Reads are
-    serialised by a lock (the stream has one cursor); a pickled copy reopens the file.
+    serialised by a lock (the stream has one cursor); a pickled copy reopens the file,
+    and so does a forked process (DataLoader workers) at its first read, because a file
+    handle inherited through fork shares its position with the parent's.
 
     Raises:
         InputError: no such member, not an ``.npy`` member numpy can stream (object
@@ -64,6 +67,7 @@ class NpzFrames:
         self._open()
 
     def _open(self) -> None:
+        self._pid = os.getpid()
         try:
             self._zip = zipfile.ZipFile(self.path)
             names = [n[:-4] for n in self._zip.namelist() if n.endswith(".npy")]
@@ -99,6 +103,8 @@ class NpzFrames:
         i = int(i) + n if int(i) < 0 else int(i)
         if not 0 <= i < n:
             raise IndexError(f"frame {i} of {n}")
+        if self._pid != os.getpid():  # forked: never read through the parent's file handle
+            self._open()
         with self._lock:
             try:
                 if i != self._next:

@@ -119,6 +119,24 @@ class TestFrameDataset:
         loader = DataLoader(FrameDataset(src), batch_size=2, num_workers=2, collate_fn=collate)
         assert torch.equal(torch.cat([b.gradients for b in loader]), torch.from_numpy(g))
 
+    @pytest.mark.parametrize("save", [np.savez, np.savez_compressed], ids=["stored", "compressed"])
+    def test_npz_in_worker_processes(self, tmp_path, save):
+        """Forked workers inherit the parent's open zip stream, whose file position they
+        share: frames larger than the read buffers came back wrong (stored) or failed to
+        decompress (compressed), and the parent's reads broke after them."""
+        rng = np.random.default_rng(1)
+        g = rng.normal(0, 0.1, (40, 96, 128, 2)).astype(np.float32)
+        c = rng.random((40, 96, 128)) > 0.5
+        save(tmp_path / "g.npz", gradients=g, contact=c)
+        src = GradientSequence(tmp_path / "g.npz", fps=25)
+        assert np.array_equal(src[5].gradients, g[5])  # the parent's stream is open and has moved
+        loader = DataLoader(FrameDataset(src), batch_size=3, num_workers=2, collate_fn=collate)
+        batches = list(loader)
+        assert torch.equal(torch.cat([b.gradients for b in batches]), torch.from_numpy(g))
+        assert torch.equal(torch.cat([b.contact for b in batches]), torch.from_numpy(c))
+        for i in (2, 39, 6):
+            assert np.array_equal(src[i].gradients, g[i]) and np.array_equal(src[i].contact, c[i])
+
     def test_len_and_index(self, video):
         ds = FrameDataset(video)
         assert len(ds) == 14 and ds[13].index == 13
