@@ -315,7 +315,9 @@ class OfflinePipeline:
             for k in keyframes
         ])
         med = lambda xs: float(np.median(xs) * 1000) if xs else float("nan")  # noqa: E731
+        name = str(getattr(self.source, "name", self.source))
         stats = {
+            "source": str(Path(name).resolve()) if Path(name).exists() else name,  # what eval checks the run against
             "method": self.options.method,
             "device": self.options.device,
             "frames": n,
