@@ -26,6 +26,9 @@ from tactile_slam.posegraph import se3
 
 EDGE_KINDS = ("odometry", "loop")
 _LOOP_MARKER = "# tactile-slam: EDGE_SE3:QUAT lines below are loop closures"
+_PRIOR_PARAM = 0  # the id of the identity PARAMS_SE3OFFSET that the written priors refer to
+_SIGMA_MIN = float(torch.finfo(torch.float64).max) ** -0.5  # smallest sigma whose sigma^-2 is finite
+_SIGMA_MAX = float(torch.finfo(torch.float64).tiny) ** -0.5  # largest whose sigma^-2 is a normal float
 
 
 class GraphError(ValueError):
@@ -85,7 +88,9 @@ def sigma_vector(sigma: Sequence[float] | torch.Tensor | None, default: torch.Te
     """Noise ``(6,)`` float64 from ``None`` (the default), 2 values (rot rad, trans m) or 6 values.
 
     Six values are [translation m x3, rotation rad x3]; two values are (rotation, translation)
-    as in :class:`PoseGraphConfig`. Raises :class:`GraphError` unless all are finite and > 0.
+    as in :class:`PoseGraphConfig`. Raises :class:`GraphError` unless all are finite and > 0
+    and their information ``sigma^-2`` is a finite, normal float64 (sigma within about
+    7.5e-155 .. 6.7e153), so that the solver's cost and the g2o export stay finite.
     """
     if sigma is None:
         return default.clone()
@@ -96,6 +101,10 @@ def sigma_vector(sigma: Sequence[float] | torch.Tensor | None, default: torch.Te
         raise GraphError(f"sigma must have 2 or 6 values, got {s.numel()}")
     if not (torch.isfinite(s).all() and (s > 0).all()):
         raise GraphError(f"sigma must be finite and > 0, got {s.tolist()}")
+    info = s ** -2
+    if not (torch.isfinite(info).all() and (info >= torch.finfo(torch.float64).tiny).all()):
+        raise GraphError(f"sigma must lie within about {_SIGMA_MIN:.1e} .. {_SIGMA_MAX:.1e}, so that its "
+                         f"information sigma^-2 is a finite, normal float64; got {s.tolist()}")
     return s
 
 
@@ -175,9 +184,32 @@ class PoseGraph:
         P = self._poses.view() if node_ids is None else self._poses.view()[self.rows(node_ids)]
         return P.reshape(-1, 4, 4).clone()
 
-    def set_poses(self, rows: torch.Tensor, start_T_kf: torch.Tensor) -> None:
-        """Overwrite the poses at ``rows`` ``(K,)`` (graph rows, not ids) with ``(K, 4, 4)``."""
-        self._poses.data[rows] = start_T_kf.reshape(-1, 16)
+    def check_rows(self, rows: Sequence[int] | torch.Tensor) -> torch.Tensor:
+        """Graph rows ``(K,)`` as int64; :class:`GraphError` unless they are integers in ``0..N-1``.
+
+        Rows are positions in :attr:`ids`, not node ids; a negative row is refused rather than
+        read from the end.
+        """
+        r = torch.as_tensor(rows)
+        if r.ndim != 1 or (r.numel() and (r.dtype == torch.bool or r.is_floating_point() or r.is_complex())):
+            raise GraphError(f"rows must be a 1-D sequence of integers, got {r.dtype} of shape {tuple(r.shape)}")
+        r = r.to(torch.int64)
+        bad = r[(r < 0) | (r >= self.num_nodes)]
+        if bad.numel():
+            raise GraphError(f"rows {bad[:5].tolist()} are outside the graph's rows 0..{self.num_nodes - 1}")
+        return r
+
+    def set_poses(self, rows: Sequence[int] | torch.Tensor, start_T_kf: torch.Tensor) -> None:
+        """Overwrite the poses at ``rows`` ``(K,)`` (graph rows, not ids) with ``(K, 4, 4)``.
+
+        The rows go through :meth:`check_rows` and the poses through :func:`se3.check_pose`
+        (finite, rigid), as for :meth:`add_nodes`.
+        """
+        r = self.check_rows(rows)
+        X = se3.check_pose(start_T_kf)
+        if X.shape != (r.numel(), 4, 4):
+            raise GraphError(f"start_T_kf must be ({r.numel()}, 4, 4), got {tuple(X.shape)}")
+        self._poses.data[r] = X.reshape(-1, 16)
 
     # ------------------------------------------------------------------ factors
     def add_prior(self, node_id: int, start_T_kf: torch.Tensor | None = None,
@@ -247,20 +279,25 @@ class PoseGraph:
 
     # ------------------------------------------------------------------ g2o
     def to_g2o(self, path: str | Path) -> Path:
-        """Write ``VERTEX_SE3:QUAT`` / ``EDGE_SE3:QUAT`` / ``EDGE_SE3_PRIOR`` lines (metres).
+        """Write the graph as a g2o file (metres) that g2o itself loads.
 
-        Information matrices are ``diag(sigma^-2)`` over the [translation, rotation] tangent,
-        written as the 21 upper-triangular entries row by row (GTSAM's reading of g2o). Loop
-        closures follow a marker comment so that :meth:`from_g2o` restores their kind.
+        Lines: ``PARAMS_SE3OFFSET 0 0 0 0 0 0 0 1`` (the identity sensor offset that g2o's
+        prior refers to), ``VERTEX_SE3:QUAT id x y z qx qy qz qw``,
+        ``EDGE_SE3_PRIOR id 0 x y z qx qy qz qw info(21)`` and
+        ``EDGE_SE3:QUAT i j x y z qx qy qz qw info(21)``. Information matrices are
+        ``diag(sigma^-2)`` over the [translation, rotation] tangent, written as the 21
+        upper-triangular entries row by row (GTSAM's reading of g2o); they are finite, since
+        :func:`sigma_vector` bounds every sigma. Loop closures follow a marker comment so that
+        :meth:`from_g2o` restores their kind.
         """
         path = Path(path)
-        lines = []
+        lines = ["PARAMS_SE3OFFSET %d %s" % (_PRIOR_PARAM, _fmt([0.0] * 6 + [1.0]))]
         ids = self.ids.tolist()
         for k, x in zip(ids, _quat_rows(self.poses())):
             lines.append("VERTEX_SE3:QUAT %d %s" % (k, _fmt(x)))
         pr = self.priors
         for r, z, s in zip(pr.rows.tolist(), _quat_rows(pr.Z), pr.sigma):
-            lines.append("EDGE_SE3_PRIOR %d %s %s" % (ids[r], _fmt(z), _fmt(_info_upper(s))))
+            lines.append("EDGE_SE3_PRIOR %d %d %s %s" % (ids[r], _PRIOR_PARAM, _fmt(z), _fmt(_info_upper(s))))
         e = self.edges
         for want_loop in (False, True):
             if want_loop and bool(e.loop.any()):
@@ -275,44 +312,84 @@ class PoseGraph:
 
     @classmethod
     def from_g2o(cls, path: str | Path, config: PoseGraphConfig | None = None) -> "PoseGraph":
-        """Read a file written by :meth:`to_g2o` (or any g2o SE3:QUAT file).
+        """Read a g2o SE3:QUAT file: one written by :meth:`to_g2o` (also by its earlier versions,
+        whose ``EDGE_SE3_PRIOR`` has no parameter id) or by g2o.
 
-        Off-diagonal information entries are ignored (noise is diagonal here). Without the loop
+        Records (``#`` lines are comments):
+
+        * ``VERTEX_SE3:QUAT id x y z qx qy qz qw`` (the quaternion is normalised);
+        * ``EDGE_SE3:QUAT i j x y z qx qy qz qw info(21)``;
+        * ``EDGE_SE3_PRIOR id param x y z qx qy qz qw info(21)``, ``param`` defined by an
+          earlier ``PARAMS_SE3OFFSET``, or ``EDGE_SE3_PRIOR id x y z qx qy qz qw info(21)``;
+        * ``PARAMS_SE3OFFSET param x y z qx qy qz qw``: only the identity offset (a prior
+          through another offset would need a full information matrix);
+        * ``FIX id ...``: each node named (already read) gets a prior at its value with the
+          default sigma, which replaces any ``EDGE_SE3_PRIOR`` of its own.
+
+        An information matrix must be finite and positive definite; its off-diagonal entries are
+        then dropped (noise is diagonal here: ``sigma = diag(info)^-1/2``). Without the loop
         marker, an edge is odometry when its ids are consecutive and a loop otherwise.
+        :class:`GraphError` names the file and line of any bad record.
         """
         path = Path(path)
         if not path.is_file():
             raise GraphError(f"g2o file not found: {path}")
         g = cls(config)
-        marker_seen = False
-        edges = []
-        for n, raw in enumerate(path.read_text().splitlines(), 1):
-            line = raw.strip()
-            if not line:
+        lines = [raw.strip() for raw in path.read_text().splitlines()]
+        any_marker = _LOOP_MARKER in lines
+        after_marker = False
+        params: set[int] = set()
+        fixed: set[int] = set()
+        for n, line in enumerate(lines, 1):
+            after_marker |= line == _LOOP_MARKER
+            if not line or line.startswith("#"):
                 continue
-            if line == _LOOP_MARKER:
-                marker_seen = True
-                continue
-            if line.startswith("#"):
-                continue
-            tok = line.split()
             try:
-                if tok[0] == "VERTEX_SE3:QUAT" and len(tok) == 9:
-                    g.add_node(int(tok[1]), _matrix(tok[2:9]))
-                elif tok[0] == "EDGE_SE3_PRIOR" and len(tok) == 30:
-                    g.add_prior(int(tok[1]), _matrix(tok[2:9]), _sigma_from_info(tok[9:30]))
-                elif tok[0] == "EDGE_SE3:QUAT" and len(tok) == 31:
-                    edges.append((int(tok[1]), int(tok[2]), _matrix(tok[3:10]), _sigma_from_info(tok[10:31]),
-                                   marker_seen))
-                else:
-                    raise GraphError(f"unsupported or malformed record {tok[0]!r}")
+                g._read_g2o_record(line.split(), params, fixed, after_marker if any_marker else None)
             except (ValueError, IndexError) as exc:
                 raise GraphError(f"{path}:{n}: {exc}") from None
-        any_marker = marker_seen
-        for i, j, Z, s, after_marker in edges:
-            loop = after_marker if any_marker else abs(j - i) != 1
-            g.add_between(i, j, Z, s, kind="loop" if loop else "odometry")
+        for k in fixed:
+            g.add_prior(k, g.pose(k))
         return g
+
+    def _read_g2o_record(self, tok: list[str], params: set[int], fixed: set[int], loop: bool | None) -> None:
+        """Apply one g2o record (its tokens) to the graph (:meth:`from_g2o`).
+
+        ``params``: the ids of the identity offsets read so far (grows); ``fixed``: the node ids
+        of ``FIX`` records (grows); ``loop``: whether an edge here is a loop closure (None:
+        decided by consecutive ids). Raises ``ValueError`` (often :class:`GraphError`).
+        """
+        kind, n = tok[0], len(tok)
+        if kind == "VERTEX_SE3:QUAT" and n == 9:
+            self.add_node(int(tok[1]), _matrix(tok[2:9]))
+        elif kind == "EDGE_SE3:QUAT" and n == 31:
+            i, j = int(tok[1]), int(tok[2])
+            is_loop = abs(j - i) != 1 if loop is None else loop
+            self.add_between(i, j, _matrix(tok[3:10]), _sigma_from_info(tok[10:31]),
+                             kind="loop" if is_loop else "odometry")
+        elif kind == "EDGE_SE3_PRIOR" and n in (30, 31):
+            if n == 31 and int(tok[2]) not in params:
+                raise GraphError(f"EDGE_SE3_PRIOR refers to parameter {tok[2]}, which no earlier "
+                                 "PARAMS_SE3OFFSET defines")
+            first = n - 28  # the pose: after the node id and, in g2o's form, the parameter id
+            self.add_prior(int(tok[1]), _matrix(tok[first:first + 7]), _sigma_from_info(tok[first + 7:]))
+        elif kind == "PARAMS_SE3OFFSET" and n == 9:
+            pid = int(tok[1])
+            if pid in params:
+                raise GraphError(f"parameter {pid} is already defined")
+            if not torch.allclose(_matrix(tok[2:9]), torch.eye(4, dtype=torch.float64), rtol=0.0, atol=1e-12):
+                raise GraphError(f"PARAMS_SE3OFFSET {pid} is not the identity; only identity offsets are "
+                                 "supported (a prior through another offset needs a full information matrix)")
+            params.add(pid)
+        elif kind == "FIX" and n >= 2:
+            ids = [int(t) for t in tok[1:]]
+            self.rows(ids)  # each must already be a node, as in g2o
+            fixed.update(ids)
+        else:
+            raise GraphError(f"unsupported or malformed record {kind!r} ({n} tokens)")
+
+
+_UPPER = torch.triu_indices(6, 6)  # (2, 21): g2o's upper triangle, row by row
 
 
 def _quat_rows(T: torch.Tensor) -> list[list[float]]:
@@ -325,18 +402,26 @@ def _fmt(values: Iterable[float]) -> str:
 
 
 def _info_upper(sigma: torch.Tensor) -> list[float]:
-    info = torch.diag(sigma.double() ** -2)
-    iu = torch.triu_indices(6, 6)
-    return info[iu[0], iu[1]].tolist()
+    """The 21 upper-triangular entries (row by row) of the information ``diag(sigma^-2)``, sigma ``(6,)``."""
+    return torch.diag(sigma.double() ** -2)[_UPPER[0], _UPPER[1]].tolist()
 
 
 def _sigma_from_info(tokens: Sequence[str]) -> torch.Tensor:
-    upper = [float(t) for t in tokens]
-    diag_pos = [0, 6, 11, 15, 18, 20]
-    d = torch.tensor([upper[p] for p in diag_pos], dtype=torch.float64)
-    if not (d > 0).all():
-        raise GraphError("information matrix must have a positive diagonal")
-    return d.rsqrt()
+    """Noise ``(6,)`` ``diag(info)^-1/2`` of a g2o information matrix given as its 21
+    upper-triangular entries row by row; the off-diagonal entries are dropped.
+
+    Raises :class:`GraphError` unless the matrix is finite and positive definite (a matrix
+    with a positive diagonal can still be indefinite).
+    """
+    upper = torch.tensor([float(t) for t in tokens], dtype=torch.float64)
+    if not torch.isfinite(upper).all():
+        raise GraphError("information matrix has non-finite entries")
+    info = torch.zeros(6, 6, dtype=torch.float64)
+    info[_UPPER[0], _UPPER[1]] = upper
+    info = info + info.triu(1).T
+    if torch.linalg.cholesky_ex(info).info != 0:
+        raise GraphError("information matrix is not positive definite")
+    return info.diagonal().rsqrt()
 
 
 def _matrix(tokens: Sequence[str]) -> torch.Tensor:

@@ -35,7 +35,7 @@ from tactile_slam.posegraph.graph import GraphError, PoseGraph
 
 
 class SolverError(ValueError):
-    """The problem is ill-posed (a connected group without a prior, non-finite values)."""
+    """The problem is ill-posed (a connected group of variables without a prior)."""
 
 
 @dataclass
@@ -45,7 +45,10 @@ class SolveReport:
     Attributes:
         iterations: accepted LM steps (summed over GNC stages).
         cost_initial / cost_final: ``0.5 sum rho(|e/sigma|^2)`` before and after.
-        converged: a tolerance was met (False when stopped by the iteration cap or lambda bound).
+        converged: a tolerance was met: an accepted step lowered the cost by at most
+            ``abs_tol`` / ``rel_tol``, or, at a minimum, a rejected step raised it by at most
+            that and was predicted to lower it by at most that (False when stopped by the
+            iteration cap or the lambda bound).
         n_variables / n_factors: poses optimised, factors touching them.
         time_s: wall-clock seconds.
         loop_weights: ``(E,)`` float64 final weight of every edge of the graph (1 for odometry
@@ -214,7 +217,12 @@ def _weights_and_cost(prob: _Problem, X: torch.Tensor, kernel: str, k2: float,
 def _levenberg_marquardt(prob: _Problem, X: torch.Tensor, config: PoseGraphConfig, kernel: str,
                          fixed_w: torch.Tensor | None, max_iters: int
                          ) -> tuple[torch.Tensor, int, float, float, bool]:
-    """GTSAM-style LM; returns (poses, accepted steps, initial cost, final cost, converged)."""
+    """GTSAM-style LM; returns (poses, accepted steps, initial cost, final cost, converged).
+
+    Converged: an accepted step lowered the cost by no more than the tolerances, or a rejected
+    step raised it by no more than them while the quadratic model predicted no larger decrease
+    (a minimum: nothing lowers the cost measurably). Not converged: lambda passed its bound.
+    """
     k2 = config.robust_chi2
     w, cost, err = _weights_and_cost(prob, X, kernel, k2, fixed_w)
     cost0 = cost
@@ -230,6 +238,9 @@ def _levenberg_marquardt(prob: _Problem, X: torch.Tensor, config: PoseGraphConfi
                 w_new, cost_new, err_new = _weights_and_cost(prob, X_new, kernel, k2, fixed_w)
                 if np.isfinite(cost_new) and cost_new <= cost:
                     break
+                if (np.isfinite(cost_new) and _negligible(cost_new - cost, cost, config)
+                        and _negligible(_predicted_decrease(g, delta, lam), cost, config)):
+                    return X, it, cost0, cost, True  # at a minimum: no step lowers the cost measurably
             lam *= config.lambda_factor
             if lam > config.lambda_max:
                 return X, it, cost0, cost, False
@@ -237,8 +248,20 @@ def _levenberg_marquardt(prob: _Problem, X: torch.Tensor, config: PoseGraphConfi
         decrease = cost - cost_new
         X, w, cost, err = X_new, w_new, cost_new, err_new
         lam = max(lam / config.lambda_factor, 1e-300)
-        converged = decrease <= config.abs_tol or decrease <= config.rel_tol * (cost + decrease) or cost <= 0
+        converged = _negligible(decrease, cost + decrease, config) or cost <= 0
     return X, it, cost0, cost, converged
+
+
+def _negligible(change: float, cost: float, config: PoseGraphConfig) -> bool:
+    """Whether a cost change is within LM's tolerances: at most ``abs_tol`` or ``rel_tol * cost``."""
+    return change <= config.abs_tol or change <= config.rel_tol * cost
+
+
+def _predicted_decrease(g: np.ndarray, delta: torch.Tensor, lam: float) -> float:
+    """The cost decrease ``-(g.d + 0.5 d^T H d)`` that the quadratic model promises for the step
+    ``d`` ``(n, 6)`` solving ``(H + lam I) d = -g`` (``g`` ``(6n,)``): ``0.5 (-g.d + lam |d|^2)``."""
+    d = delta.numpy().reshape(-1)
+    return 0.5 * (-float(g @ d) + lam * float(d @ d))
 
 
 @contextmanager
@@ -268,12 +291,13 @@ def solve(graph: PoseGraph, config: PoseGraphConfig | None = None,
     Args:
         graph: the pose graph; its current poses are the initial values (warm start).
         config: solver settings and robust mode; defaults to :class:`PoseGraphConfig`.
-        rows: ``(n,)`` graph rows to optimise (e.g. one connected group); all other poses
-            are held fixed. ``None`` optimises every node.
+        rows: ``(n,)`` graph rows to optimise (e.g. one connected group), integers in
+            ``0..N-1`` (:meth:`PoseGraph.check_rows`); all other poses are held fixed. ``None``
+            optimises every node.
         max_iters: cap on accepted LM steps per stage (``config.max_iters`` if None).
 
     Raises :class:`SolverError` when a connected group of variables has no prior and no fixed
-    neighbour, and :class:`GraphError` for an unknown robust mode.
+    neighbour, and :class:`GraphError` for an unknown robust mode or a row outside the graph.
     """
     with solver_context():
         report = _solve(graph, config, rows, max_iters)
@@ -291,14 +315,12 @@ def _solve(graph: PoseGraph, config: PoseGraphConfig | None, rows: torch.Tensor 
     report = SolveReport(loop_weights=torch.ones(graph.num_edges, dtype=torch.float64))
     if graph.num_nodes == 0:
         return report
-    rows = torch.arange(graph.num_nodes) if rows is None else torch.as_tensor(rows, dtype=torch.int64)
+    rows = torch.arange(graph.num_nodes) if rows is None else graph.check_rows(rows)
     if rows.numel() == 0:
         return report
     prob = _Problem(graph, torch.unique(rows))
     report.n_variables, report.n_factors = prob.n, prob.edge_idx.numel() + prob.prow.numel()
     X = graph.poses()
-    if not torch.isfinite(X).all():
-        raise SolverError("initial poses contain NaN or inf")
 
     if config.robust == "gnc":
         X, w, its, c0, c1, conv = _gnc(prob, X, config, max_iters)

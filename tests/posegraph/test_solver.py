@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import copy
 import dataclasses
+import re
 
 import pytest
 import torch
@@ -133,13 +134,67 @@ class TestStructure:
         with pytest.raises(GraphError, match="robust"):
             solve(copy.deepcopy(scan.graph), PoseGraphConfig(robust="tukey"))
 
-    def test_nan_initial_pose(self):
-        g = PoseGraph()
-        g.add_node(0)
-        g.add_prior(0)
-        g.set_poses(torch.tensor([0]), torch.full((1, 4, 4), float("nan"), dtype=torch.float64))
-        with pytest.raises(SolverError, match="NaN"):
-            solve(g)
+    @pytest.mark.parametrize("rows", [[7], [-1], [1, 4]])
+    def test_rows_outside_the_graph_are_refused(self, rows):
+        """A row past the end used to raise a bare IndexError, and -1 was taken as the last row."""
+        g = _chain(4)
+        before = g.poses()
+        bad = [r for r in rows if not 0 <= r < 4]
+        with pytest.raises(GraphError, match=re.escape(f"rows {bad} are outside the graph's rows 0..3")):
+            solve(g, rows=torch.tensor(rows))
+        assert torch.equal(g.poses(), before)
+
+    def test_rows_may_be_a_list_or_empty(self):
+        g = _chain(4)
+        assert solve(g, rows=[]).n_variables == 0
+        assert solve(g, rows=[1, 2]).n_variables == 2
+
+
+def _chain(n: int) -> PoseGraph:
+    """``n`` nodes 1 mm apart along x, a prior on node 0, odometry that agrees with them."""
+    g = PoseGraph()
+    g.add_nodes(range(n), se3.exp(torch.tensor([[1e-3 * k, 0, 0, 0, 0, 0] for k in range(n)], dtype=torch.float64)))
+    g.add_prior(0)
+    for k in range(n - 1):
+        g.add_between(k, k + 1, se3.exp(torch.tensor([1e-3, 0, 0, 0, 0, 0], dtype=torch.float64)))
+    return g
+
+
+class TestConvergence:
+    def test_converged_at_the_optimum_of_conflicting_edges(self):
+        """Three edges 0 -> 1 of 1, 1 and 2 mm: one step reaches the least-squares optimum (4/3
+        mm); the next cannot lower the cost by more than rounding. That used to push lambda past
+        its bound and report converged=False."""
+        g = _chain(4)
+        for x in (1e-3, 2e-3):
+            g.add_between(0, 1, se3.exp(torch.tensor([x, 0, 0, 0, 0, 0], dtype=torch.float64)))
+        ref = copy.deepcopy(g)
+        rep = solve(g)
+        assert rep.converged and rep.iterations == 1
+        assert g.pose(1)[0, 3].item() == pytest.approx(4e-3 / 3, abs=1e-12)
+        assert rep.cost_final == pytest.approx(solve_pypose(ref)["cost_final"], rel=1e-9)
+        assert torch.allclose(g.poses(), ref.poses(), atol=1e-12)
+
+    def test_gnc_converged_when_its_last_stage_starts_at_the_optimum(self):
+        """GNC's last weighted LM starts where the previous stage ended, at its optimum: all its
+        steps are rejected by rounding, which used to report converged=False."""
+        s = synthetic_scan(30, 10, seed=0, radius_m=0.005)
+        noise = torch.randn(30, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+        s.graph.set_poses(torch.arange(30), s.graph.poses() @ se3.exp(noise * torch.tensor([1e-3] * 3 + [0.05] * 3)))
+        rep = solve(s.graph, PoseGraphConfig(robust="gnc"))
+        assert rep.converged and not rep.rejected_loops
+
+    def test_stuck_solve_is_not_converged(self):
+        """Far from the optimum (rotations perturbed by ~1 rad) with lambda capped at 1e-4, every
+        step raises the cost: the solve gives up and says so."""
+        s = synthetic_scan(30, 10, seed=4, radius_m=0.005)
+        noise = torch.randn(30, 6, dtype=torch.float64, generator=torch.Generator().manual_seed(0))
+        s.graph.set_poses(torch.arange(30), s.graph.poses() @ se3.exp(noise * torch.tensor([1e-3] * 3 + [1.0] * 3)))
+        g = copy.deepcopy(s.graph)
+        stuck = solve(g, PoseGraphConfig(lambda_max=1e-4))
+        free = solve(s.graph)
+        assert not stuck.converged
+        assert free.converged and stuck.cost_final > 2 * free.cost_final
 
 
 @pytest.fixture(scope="module")
