@@ -8,13 +8,16 @@ Metrics use the frames from the reference on that the ground truth has in contac
 Each reconstruction the run holds (``mesh.ply``: the watertight mesh, ``mesh_fused.ply``:
 the fused keyframe surface, ``reconstructed_mesh.ply``: GelSLAM's name; all in metres in
 the reference frame) is scored against ``object.ply`` too. Writes ``metrics.json`` and
-``tracking_error.png``.
+``tracking_error.png``. When the run's ``stats.json`` names a ``source`` that is neither
+the episode folder nor a file in it, the run was made on other data: eval warns
+(:class:`SourceMismatchWarning`) and scores it all the same.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -22,10 +25,16 @@ import numpy as np
 from tactile_slam.cli.arguments import output_folder, positive_int
 from tactile_slam.eval.loop_metrics import loop_flags, loop_precision_recall
 from tactile_slam.eval.tracking_metrics import AXES, per_axis_errors, tracking_report
-from tactile_slam.eval.trajectory import TrajectoryError, check_trajectory, relative_to, valid_mask
+from tactile_slam.eval.trajectory import TrajectoryError, read_poses, relative_to, valid_mask
 from tactile_slam.sim.episode import read_episode, read_mesh
 
 RECON_FILES = ("mesh.ply", "mesh_fused.ply", "reconstructed_mesh.ply")
+
+
+class SourceMismatchWarning(UserWarning):
+    """The run read something other than the episode it is scored against (its
+    ``stats.json`` ``source`` is neither the episode folder nor a file in it): the scores
+    compare it with another recording's ground truth."""
 
 
 def register(sub) -> None:
@@ -51,8 +60,13 @@ def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, to
     poses_path = run_dir / "poses.npy"
     if not poses_path.is_file():
         raise TrajectoryError(f"run folder {run_dir} has no poses.npy")
-    est = check_trajectory(np.load(poses_path, allow_pickle=False), str(poses_path))
+    est = read_poses(poses_path)
     ep = read_episode(gt_dir)
+    source = run_source(run_dir)
+    if source is not None and not reads_from(source, ep.path):
+        warnings.warn(f"run {run_dir} read {source}, which is neither the episode {ep.path.resolve()} nor a file "
+                      "in it: it is scored against another recording's ground truth", SourceMismatchWarning,
+                      stacklevel=2)
     if len(est) != len(ep):
         raise TrajectoryError(f"run has {len(est)} frames but the episode has {len(ep)}")
     has = valid_mask(est)
@@ -84,6 +98,30 @@ def evaluate_run(run_dir: str | Path, gt_dir: str | Path, recon: bool = True, to
     errors = per_axis_errors(est, gt)
     errors[~frames] = np.nan
     return metrics, {"frames": np.arange(ref, ref + len(est)), "errors": errors}
+
+
+def run_source(run_dir: Path) -> str | None:
+    """The ``source`` the run's ``stats.json`` names (an absolute path, or a camera's
+    name); ``None`` for a run without ``stats.json`` or one written before it had the key."""
+    path = run_dir / "stats.json"
+    if not path.is_file():
+        return None
+    try:
+        stats = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise TrajectoryError(f"cannot read {path}: {exc}") from exc
+    if not isinstance(stats, dict):
+        raise TrajectoryError(f"{path} is not a JSON object")
+    source = stats.get("source")
+    if source is not None and not isinstance(source, str):
+        raise TrajectoryError(f"{path}: source must be a path, got {source!r}")
+    return source
+
+
+def reads_from(source: str, episode_dir: Path) -> bool:
+    """Whether ``source`` is the episode folder or a file inside it (symlinks resolved)."""
+    src, ep = Path(source).resolve(), Path(episode_dir).resolve()
+    return src == ep or ep in src.parents
 
 
 def _read_loops(path: Path, held: bool = False) -> list[dict]:

@@ -25,8 +25,10 @@ def register(sub) -> None:
                         + ", ".join(f"{k} {v}" for k, v in DEFAULT_FRAMES.items()) + ")")
     p.add_argument("--level", default="gradients", choices=LEVELS,
                    help="gradients: ground-truth maps only; image: also the BGR video (needs the colour model)")
-    p.add_argument("--size-mm", type=float, default=None, help="object size (catalogue objects)")
-    p.add_argument("--mesh-scale", type=float, default=1.0, help="user mesh units to metres (1e-3 for mm)")
+    p.add_argument("--size-mm", type=float, default=None,
+                   help="object size, longest dimension (catalogue objects only; default: the catalogue's)")
+    p.add_argument("--mesh-scale", type=float, default=None,
+                   help="mesh file units to metres, e.g. 1e-3 for mm (mesh files only; default: 1, metres)")
     p.add_argument("--noise", type=float, default=1.0, help="image noise std in grey levels")
     p.add_argument("--colour-model", default=None, help="forward colour model (.pt)")
     p.add_argument("--background", default=None, help="background image (default: real Mini background or synthetic)")

@@ -11,7 +11,8 @@ start frame (element 0 is the identity); NaN rows are frames without an estimate
 * :func:`ate`: RMSE of the translation error (mm) and RMS geodesic rotation error (deg),
   without alignment (the start frame is shared) or after an SE(3) Umeyama alignment.
 * :func:`rpe`: relative pose error over a fixed number of frames or a fixed travel.
-* :func:`motion_range`: cumulative motion per axis (the paper's Table I quantity).
+* :func:`motion_range`: cumulative motion per axis (the paper's Table I quantity) over
+  steps between consecutive evaluated frames, Euler angle changes unwrapped.
 """
 
 from __future__ import annotations
@@ -176,14 +177,25 @@ def rpe(est: np.ndarray, gt: np.ndarray, delta: int | None = 1, distance_mm: flo
 
 
 def motion_range(start_T_curr: np.ndarray, frames: np.ndarray | None = None) -> dict[str, float]:
-    """Cumulative motion per axis: the sum over consecutive frames (of those in
-    ``frames``) of the absolute change of each :func:`pose_vector` component. mm, deg."""
+    """Cumulative motion per axis (mm, deg): over each pair of consecutive frames that are
+    both in ``frames`` (``(T,)`` bool; all when ``None``) and both have a pose, the sum of
+    the absolute change of each :func:`pose_vector` component.
+
+    Steps across frames outside ``frames`` (the lifts between touches) or without a pose
+    are left out, and an angle change is taken into (-180, 180] deg, so crossing the
+    Euler angles' +-180 deg wrap counts the rotation made, not 360 deg minus it. Near
+    the zxy gimbal lock (``theta_x`` at +-90 deg) ``theta_y`` and ``theta_z`` still change
+    fast for a small rotation.
+    """
     v = pose_vector(check_trajectory(start_T_curr))
+    use = valid_mask(v)
     if frames is not None:
-        v = v[np.asarray(frames, dtype=bool)]
-    d = np.abs(np.diff(v, axis=0))
-    d = d[np.isfinite(d).all(axis=1)]
-    return {k: float(d[:, i].sum()) for i, k in enumerate(AXES)}
+        if np.shape(frames) != use.shape:
+            raise TrajectoryError(f"frames {np.shape(frames)} do not match {len(use)} poses")
+        use &= np.asarray(frames, dtype=bool)
+    d = np.diff(v, axis=0)[use[:-1] & use[1:]]
+    d[:, 3:] = 180.0 - (180.0 - d[:, 3:]) % 360.0
+    return {k: float(np.abs(d[:, i]).sum()) for i, k in enumerate(AXES)}
 
 
 def frame_steps(poses: np.ndarray, frames: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:

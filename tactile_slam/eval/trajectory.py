@@ -17,20 +17,64 @@ class TrajectoryError(ValueError):
     """A trajectory file or array is malformed."""
 
 
+RIGID_TOL = 1e-4
+"""Largest deviation of ``R R^T`` from the identity, and of the bottom row from
+``0 0 0 1``, that a pose may have."""
+
+
 def check_trajectory(poses: np.ndarray, where: str = "trajectory") -> np.ndarray:
-    """``(T, 4, 4)`` float64 copy of ``poses``; NaN rows allowed, Inf and non-rigid not."""
-    poses = np.array(poses, dtype=np.float64)
+    """``(T, 4, 4)`` float64 copy of ``poses``; NaN rows allowed, Inf and non-rigid not.
+
+    A frame with a pose is rigid when its rotation is orthonormal and has determinant +1
+    (no reflection) and its bottom row is ``0 0 0 1``, each within :data:`RIGID_TOL`.
+
+    Raises:
+        TrajectoryError: naming ``where`` and, for a non-rigid pose, the first such
+            frame (its index in ``poses``: the video frame of a run's ``poses.npy``).
+    """
+    arr = np.asarray(poses)
+    if arr.dtype.kind not in "biuf":
+        raise TrajectoryError(f"{where}: poses must be numbers, got dtype {arr.dtype}")
+    poses = np.array(arr, dtype=np.float64)
     if poses.ndim != 3 or poses.shape[1:] != (4, 4):
         raise TrajectoryError(f"{where}: poses must be (T, 4, 4), got {poses.shape}")
     if len(poses) == 0:
         raise TrajectoryError(f"{where}: empty trajectory")
-    valid = valid_mask(poses)
     if np.isinf(poses).any():
         raise TrajectoryError(f"{where}: poses contain Inf")
-    rot = poses[valid, :3, :3]
-    if len(rot) and np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max() > 1e-4:
-        raise TrajectoryError(f"{where}: rotations are not orthonormal")
+    frames = np.flatnonzero(valid_mask(poses))
+    rot, bottom = poses[frames, :3, :3], poses[frames, 3]
+    ortho = np.abs(rot @ rot.transpose(0, 2, 1) - np.eye(3)).max(axis=(1, 2), initial=0.0)
+    det = np.linalg.det(rot)
+    off = np.abs(bottom - [0.0, 0.0, 0.0, 1.0]).max(axis=1, initial=0.0)
+    for bad, what in ((ortho > RIGID_TOL, lambda k: f"rotation is not orthonormal (|R R^T - I| = {ortho[k]:.3g})"),
+                      (det < 0, lambda k: f"rotation has determinant {det[k]:.3g}, a reflection, not +1"),
+                      (off > RIGID_TOL, lambda k: f"bottom row is {bottom[k].tolist()}, not [0, 0, 0, 1]")):
+        if bad.any():
+            k = int(np.argmax(bad))
+            raise TrajectoryError(f"{where}: frame {frames[k]} is not a rigid pose: {what(k)} "
+                                  f"({int(bad.sum())} of the {len(frames)} frames with a pose fail this check)")
     return poses
+
+
+def read_poses(path: str | Path) -> np.ndarray:
+    """A ``.npy`` file of poses -> :func:`check_trajectory`'s ``(T, 4, 4)`` float64.
+
+    Raises:
+        TrajectoryError: naming ``path``: missing, not a ``.npy`` file, unreadable (e.g.
+            pickled objects) or not a trajectory of rigid poses.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise TrajectoryError(f"pose file not found: {path}")
+    with path.open("rb") as f:
+        if f.read(6) != b"\x93NUMPY":
+            raise TrajectoryError(f"{path} is not a NumPy .npy file (it does not start with the .npy header)")
+    try:
+        poses = np.load(path, allow_pickle=False)
+    except (ValueError, OSError, EOFError) as exc:
+        raise TrajectoryError(f"cannot read {path}: {exc}") from exc
+    return check_trajectory(poses, str(path))
 
 
 def valid_mask(poses: np.ndarray) -> np.ndarray:

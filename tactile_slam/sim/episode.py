@@ -41,7 +41,7 @@ from tactile_slam.eval.trajectory import relative_to
 from tactile_slam.io.gradients import EPISODE_NPZ
 from tactile_slam.io.scan import VIDEO_NAME
 from tactile_slam.sim.motions import MOTION_REVISION, Motion, MotionConfig, make_motion
-from tactile_slam.sim.objects import OBJECTS, resolve_object
+from tactile_slam.sim.objects import OBJECTS, extent_mm, resolve_object
 from tactile_slam.sim.renderer import GelRenderer, RenderConfig
 
 LEVELS = ("gradients", "image")
@@ -204,8 +204,10 @@ class SimulationSettings:
         seed: seeds the object texture, the motion and the image noise.
         frames: number of frames; ``None`` = the kind's default.
         level: ``gradients`` or ``image``.
-        size_mm: object size; ``None`` = the catalogue default.
-        mesh_scale: scale from a user mesh's units to metres.
+        size_mm: catalogue object size; ``None`` = the catalogue default. Refused for a
+            mesh file.
+        mesh_scale: scale from a user mesh's units to metres; ``None`` = 1 (metres).
+            Refused for a catalogue object.
         noise_std: image noise (grey levels).
         colour_model: forward colour model file (``None``: the packaged default).
         background: background image (``None``: real Mini background if present, else synthetic).
@@ -218,7 +220,7 @@ class SimulationSettings:
     frames: int | None = None
     level: str = "gradients"
     size_mm: float | None = None
-    mesh_scale: float = 1.0
+    mesh_scale: float | None = None
     noise_std: float = 1.0
     colour_model: str | None = None
     background: str | None = None
@@ -232,12 +234,19 @@ def simulate_episode(out_dir: str | Path, settings: SimulationSettings, config: 
 
     Returns:
         ``out_dir``.
+
+    Raises:
+        EpisodeError: a bad setting (before rendering), or no frame of the rendered
+            episode is in contact (the object too small for the sensor, or a mesh in other
+            units); then nothing is written and ``out_dir`` is left as it was.
+        ObjectError: an unknown object, or a size for a mesh file or a mesh scale for a
+            catalogue object.
     """
     if settings.level not in LEVELS:
         raise EpisodeError(f"level must be one of {LEVELS}, got {settings.level!r}")
     if not (math.isfinite(settings.noise_std) and settings.noise_std >= 0):
         raise EpisodeError(f"image noise must be a finite std >= 0 grey levels, got {settings.noise_std}")
-    if not (math.isfinite(settings.mesh_scale) and settings.mesh_scale > 0):
+    if settings.mesh_scale is not None and not (math.isfinite(settings.mesh_scale) and settings.mesh_scale > 0):
         raise EpisodeError(f"mesh scale must be finite and > 0, got {settings.mesh_scale}")
     if settings.batch < 1:
         raise EpisodeError(f"batch must be >= 1 frame, got {settings.batch}")
@@ -252,14 +261,24 @@ def simulate_episode(out_dir: str | Path, settings: SimulationSettings, config: 
     renderer = GelRenderer(mesh, config, render_config, device)
     motion = make_motion(renderer, settings.kind, settings.frames, settings.seed, motion_config)
     out = Path(out_dir)
+    created = not out.exists()
     out.mkdir(parents=True, exist_ok=True)
     in_contact = _render_to_disk(out, renderer, motion, settings, colour_model, background)
+    rendered = [out / GRADIENTS] + ([out / VIDEO] if colour_model is not None else [])
+    if not in_contact.any():
+        for path in rendered:
+            _staged(path).unlink()
+        if created:
+            out.rmdir()
+        raise EpisodeError(no_contact_message(settings, mesh, config, len(in_contact)))
+    for path in rendered:
+        _staged(path).replace(path)
     np.save(out / POSES, motion.object_T_sensor)
     np.save(out / CONTACT, in_contact)
     o3d.io.write_triangle_mesh(str(out / MESH), mesh)
     if background is not None:
         cv2.imwrite(str(out / BACKGROUND), background)
-    first = int(np.argmax(in_contact)) if in_contact.any() else 0
+    first = int(np.argmax(in_contact))
     gt_rel = relative_to(motion.object_T_sensor, first)
     steps = motion_steps(motion.object_T_sensor, in_contact, config)
     if steps["steps_over_limit"]:
@@ -281,10 +300,8 @@ def simulate_episode(out_dir: str | Path, settings: SimulationSettings, config: 
         "contact_frames": int(in_contact.sum()),
         "pose_convention": "gt_poses[i] = object_T_sensor (sensor pose in the object frame), metres",
         "sensor": dataclasses.asdict(config.sensor),
-        "object": {"name": settings.object, "catalogue": settings.object in OBJECTS,
-                   "size_mm": settings.size_mm if settings.size_mm is not None else
-                   (OBJECTS[settings.object].default_size_mm if settings.object in OBJECTS else None),
-                   "mesh_scale": settings.mesh_scale, "triangles": len(mesh.triangles), "file": MESH},
+        "object": {"name": settings.object, "catalogue": settings.object in OBJECTS, **applied_size(settings),
+                   "extent_mm": extent_mm(mesh), "triangles": len(mesh.triangles), "file": MESH},
         "gel": dataclasses.asdict(renderer.render_config),
         "motion": _plain(dataclasses.asdict(motion_config)),
         "motion_revision": MOTION_REVISION,
@@ -299,20 +316,44 @@ def simulate_episode(out_dir: str | Path, settings: SimulationSettings, config: 
     return out
 
 
+def applied_size(settings: SimulationSettings) -> dict:
+    """``{"size_mm", "mesh_scale"}`` as applied to the object (``meta.yaml``): a catalogue
+    object's size (the default when none was given) and no scale; a mesh file's scale
+    (1 when none was given) and no size."""
+    if settings.object in OBJECTS:
+        size = OBJECTS[settings.object].default_size_mm if settings.size_mm is None else float(settings.size_mm)
+        return {"size_mm": size, "mesh_scale": None}
+    return {"size_mm": None, "mesh_scale": 1.0 if settings.mesh_scale is None else float(settings.mesh_scale)}
+
+
+def no_contact_message(settings: SimulationSettings, mesh: o3d.geometry.TriangleMesh, config: Config,
+                       frames: int) -> str:
+    """Why an episode with no frame in contact is refused, with the object's size."""
+    return (f"{settings.object}: no frame of the {frames}-frame {settings.kind} episode is in contact (a contact area "
+            f"of at least {config.contact.min_contact_mm2:.2f} mm^2 is needed); the object is "
+            f"{extent_mm(mesh):.4g} mm across: too small for the sensor, or a mesh file in other units "
+            "(--mesh-scale)")
+
+
+def _staged(path: Path) -> Path:
+    """The temporary name a rendered file is written under until the episode is accepted."""
+    return path.with_name(f"{path.stem}.part{path.suffix}")
+
+
 def _plain(d: dict) -> dict:
     return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
 
 
 def _render_to_disk(out: Path, renderer: GelRenderer, motion: Motion, settings: SimulationSettings,
                     colour_model, background) -> np.ndarray:
-    """Render in batches, streaming gradients into the npz and frames into the video."""
+    """Render in batches, streaming gradients into the npz and frames into the video, both
+    under their :func:`_staged` names; ``(T,)`` bool in-contact flags."""
     poses = motion.object_T_sensor
     t = len(poses)
     h, w = renderer.config.sensor.shape
     in_contact = np.zeros(t, dtype=bool)
     contact_bits = []
-    path = out / GRADIENTS
-    tmp = path.with_suffix(".npz.part")
+    tmp = _staged(out / GRADIENTS)
 
     def frames() -> Iterator[np.ndarray]:
         with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
@@ -335,11 +376,10 @@ def _render_to_disk(out: Path, renderer: GelRenderer, motion: Motion, settings: 
     if colour_model is not None:
         from tactile_slam.io.video import write_video
 
-        write_video(out / VIDEO, frames(), renderer.config.sensor.fps)
+        write_video(_staged(out / VIDEO), frames(), renderer.config.sensor.fps)
     else:
         for _ in frames():
             pass
-    tmp.replace(path)
     return in_contact
 
 

@@ -16,6 +16,7 @@ elastomer's ~0.1 mm smoothing.
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
@@ -29,7 +30,18 @@ from tactile_slam.sim.surface import sample_triangles
 
 
 class ObjectError(ValueError):
-    """An object name, size or mesh file is invalid."""
+    """An object name, size or mesh file is invalid, or a setting that does not apply
+    to that kind of object was given."""
+
+
+class MeshSizeWarning(UserWarning):
+    """A user mesh, after its scale, is outside :data:`SIZE_RANGE_MM`, the sizes of a
+    tactile object: its file is probably in other units than the scale assumes."""
+
+
+SIZE_RANGE_MM = (2.0, 200.0)
+"""Overall sizes (longest extent, mm) of an object a tactile sensor scans: the range the
+catalogue accepts and the one a user mesh is checked against."""
 
 
 # ---------------------------------------------------------------- base shapes (mm)
@@ -312,11 +324,17 @@ def make_object(name: str, size_mm: float | None = None, seed: int = 0,
     if name not in OBJECTS:
         raise ObjectError(f"unknown object {name!r}; choose one of {sorted(OBJECTS)} or give a mesh file")
     size = OBJECTS[name].default_size_mm if size_mm is None else float(size_mm)
-    if not (math.isfinite(size) and 2.0 <= size <= 200.0):
-        raise ObjectError(f"object size must be between 2 and 200 mm, got {size_mm}")
+    lo, hi = SIZE_RANGE_MM
+    if not (math.isfinite(size) and lo <= size <= hi):
+        raise ObjectError(f"object size must be between {lo:g} and {hi:g} mm, got {size_mm}")
     if not (math.isfinite(resolution_mm) and resolution_mm > 0):
         raise ObjectError(f"resolution_mm must be > 0, got {resolution_mm}")
     return o3d.geometry.TriangleMesh(_build(name, size, int(seed), float(resolution_mm)))
+
+
+def extent_mm(mesh: o3d.geometry.TriangleMesh) -> float:
+    """Longest side of the mesh's axis-aligned bounding box, mm (its vertices in metres)."""
+    return float(np.ptp(np.asarray(mesh.vertices), axis=0).max() * 1e3)
 
 
 def load_object(path: str | Path, scale: float = 1.0) -> o3d.geometry.TriangleMesh:
@@ -328,6 +346,10 @@ def load_object(path: str | Path, scale: float = 1.0) -> o3d.geometry.TriangleMe
 
     Returns:
         The mesh in metres with vertex normals; it is not re-centred.
+
+    Warns:
+        MeshSizeWarning: the scaled mesh's longest extent is outside
+            :data:`SIZE_RANGE_MM` (a file in mm read as metres is 1000 times too large).
     """
     path = Path(path)
     if not path.is_file():
@@ -342,15 +364,33 @@ def load_object(path: str | Path, scale: float = 1.0) -> o3d.geometry.TriangleMe
         raise ObjectError(f"mesh file has non-finite vertices: {path}")
     if scale != 1.0:
         mesh.vertices = o3d.utility.Vector3dVector(verts * scale)
+    size = extent_mm(mesh)
+    lo, hi = SIZE_RANGE_MM
+    if not lo <= size <= hi:
+        warnings.warn(f"{path} is {size:.4g} mm across with mesh scale {scale:g} (its units to metres), outside the "
+                      f"{lo:g}-{hi:g} mm of a tactile object: the file may be in other units; give the scale "
+                      "(--mesh-scale), e.g. 1e-3 for a file in mm, 1e-2 in cm, 0.0254 in inches", MeshSizeWarning,
+                      stacklevel=2)
     mesh.compute_vertex_normals()
     return mesh
 
 
 def resolve_object(name_or_path: str, size_mm: float | None = None, seed: int = 0,
-                   scale: float = 1.0) -> o3d.geometry.TriangleMesh:
-    """A catalogue name or a mesh path -> mesh in metres."""
+                   scale: float | None = None) -> o3d.geometry.TriangleMesh:
+    """A catalogue name or a mesh path -> mesh in metres.
+
+    ``size_mm`` applies to catalogue objects only (``None``: the default size) and
+    ``scale`` to mesh files only (``None``: 1, the file is in metres); giving one for the
+    other kind of object is an :class:`ObjectError` rather than silently ignored.
+    """
     if name_or_path in OBJECTS:
+        if scale is not None:
+            raise ObjectError(f"a mesh scale (--mesh-scale) applies to mesh files, not to the catalogue object "
+                              f"{name_or_path!r}; give its size with --size-mm")
         return make_object(name_or_path, size_mm, seed)
     if Path(name_or_path).suffix.lower() in (".ply", ".obj", ".stl"):
-        return load_object(name_or_path, scale)
+        if size_mm is not None:
+            raise ObjectError(f"a size (--size-mm) applies to catalogue objects, not to the mesh file {name_or_path}; "
+                              "convert its units to metres with --mesh-scale")
+        return load_object(name_or_path, 1.0 if scale is None else scale)
     raise ObjectError(f"unknown object {name_or_path!r}; choose one of {sorted(OBJECTS)} or give a mesh file")

@@ -3,7 +3,7 @@ import json
 import numpy as np
 import pytest
 
-from tactile_slam.cli.eval import held_loop_report
+from tactile_slam.cli.eval import SourceMismatchWarning, held_loop_report
 from tactile_slam.cli.main import main
 from tactile_slam.eval.trajectory import TrajectoryError, relative_to
 from tactile_slam.sim.episode import SimulationSettings, simulate_episode
@@ -121,3 +121,71 @@ def test_held_loop_report_refuses_malformed_files(tmp_path, held, match):
 def test_held_loop_report_of_no_held_loops_is_empty(tmp_path):
     run, gt = _held_run(tmp_path, [])
     assert held_loop_report(run, gt) == {}
+
+
+def _run_of(episode, run):
+    """A run folder with the episode's exact poses from frame 10 on."""
+    est = relative_to(np.load(episode / "gt_poses.npy"), 10)
+    est[:10] = np.nan
+    run.mkdir()
+    np.save(run / "poses.npy", est)
+    return run
+
+
+def test_eval_warns_when_the_run_read_another_episode(episode, tmp_path):
+    """eval scored a run against any episode of the same length; the run's stats.json
+    now names its source, and one outside the episode folder is warned of (and scored)."""
+    import warnings
+
+    run = _run_of(episode, tmp_path / "run")
+    other = f"{episode}_other/gt_gradients.npz"  # a sibling whose name starts like the episode's
+    (run / "stats.json").write_text(json.dumps({"source": other}))
+    with pytest.warns(SourceMismatchWarning) as record:
+        assert main(["eval", str(run), "--gt", str(episode), "--no-recon"]) == 0
+    assert other in str(record[0].message) and str(episode.resolve()) in str(record[0].message)
+    assert (run / "metrics.json").is_file()
+    for stats in ({"source": str(episode / "gt_gradients.npz")}, {"source": str(episode)}, {"frames": 30}):
+        (run / "stats.json").write_text(json.dumps(stats))
+        with warnings.catch_warnings():
+            warnings.simplefilter("error", SourceMismatchWarning)
+            assert main(["eval", str(run), "--gt", str(episode), "--no-recon"]) == 0
+    (run / "stats.json").write_text("{broken")
+    assert main(["eval", str(run), "--gt", str(episode), "--no-recon"]) == 2
+
+
+def _reflect(p):
+    p[:3, 0] *= -1
+
+
+def _bottom_row(p):
+    p[3] = [1, 2, 3, 4]
+
+
+def _shear(p):
+    p[0, 1] += 0.01
+
+
+@pytest.mark.parametrize("spoil, message", [(_reflect, "determinant -1"), (_bottom_row, "bottom row"),
+                                            (_shear, "not orthonormal")])
+def test_eval_names_file_and_video_frame_of_a_non_rigid_pose(episode, tmp_path, capsys, spoil, message):
+    """A reflection gave scipy's "Non-positive determinant ... matrix 5" (5 counted among
+    the frames with a pose) and a bottom row [1, 2, 3, 4] was scored."""
+    run = _run_of(episode, tmp_path / "run")
+    est = np.load(run / "poses.npy")
+    spoil(est[15])
+    np.save(run / "poses.npy", est)
+    assert main(["eval", str(run), "--gt", str(episode), "--no-recon"]) == 2
+    err = capsys.readouterr().err
+    assert f"{run / 'poses.npy'}: frame 15 is not a rigid pose" in err and message in err
+
+
+def test_eval_names_an_unreadable_pose_file(episode, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "poses.npy").write_text("garbage")
+    assert main(["eval", str(run), "--gt", str(episode), "--no-recon"]) == 2
+    err = capsys.readouterr().err
+    assert f"{run / 'poses.npy'} is not a NumPy .npy file" in err and "pickled" not in err
+    np.save(run / "poses.npy", np.array([{"a": 1}], dtype=object), allow_pickle=True)
+    assert main(["eval", str(run), "--gt", str(episode), "--no-recon"]) == 2
+    assert f"cannot read {run / 'poses.npy'}: Object arrays" in capsys.readouterr().err

@@ -6,7 +6,8 @@ from scipy.spatial.transform import Rotation
 
 from tactile_slam.eval.tracking_metrics import (ate, frame_steps, geodesic_deg, motion_range, per_axis_errors, per_axis_mae,
                                                 pose_vector, rpe, tracking_report, travel_pairs, umeyama)
-from tactile_slam.eval.trajectory import TrajectoryError, read_tum, relative_to, valid_mask, write_tum
+from tactile_slam.eval.trajectory import (TrajectoryError, check_trajectory, read_poses, read_tum, relative_to,
+                                         valid_mask, write_tum)
 
 
 def rx(a):
@@ -156,3 +157,49 @@ def test_tum_roundtrip(tmp_path):
         read_tum(tmp_path / "q.txt")
     with pytest.raises(TrajectoryError, match="not found"):
         read_tum(tmp_path / "none.txt")
+
+
+def test_check_trajectory_names_the_first_non_rigid_frame():
+    """The frame is the row of ``poses`` (NaN rows counted), not an index among the rows
+    with a pose; rounding within the tolerance is accepted."""
+    p = line(8)
+    p[:3] = np.nan
+    p[6, :3, :3] = np.diag([1.0, 1.0, -1.0])  # a reflection
+    with pytest.raises(TrajectoryError, match=r"^run: frame 6 is not a rigid pose: rotation has determinant -1"):
+        check_trajectory(p, "run")
+    p[6, :3, :3] = np.eye(3)
+    p[4, 3] = [0, 0, 1e-3, 1]
+    p[7, 3] = [0, 0, 0, 2]
+    with pytest.raises(TrajectoryError, match=r"frame 4 .*bottom row is \[0.0, 0.0, 0.001, 1.0\].*2 of the 5 frames"):
+        check_trajectory(p)
+    p[4, 3] = p[7, 3] = [0, 0, 0, 1 + 1e-7]
+    p[5, :3, :3] = rz(0.1) + 1e-7
+    assert np.array_equal(check_trajectory(p), p, equal_nan=True)
+    with pytest.raises(TrajectoryError, match="dtype <U1"):
+        check_trajectory(np.full((2, 4, 4), "a"))
+
+
+def test_read_poses_names_the_file(tmp_path):
+    np.save(tmp_path / "ok.npy", line(3).astype(np.float32))
+    assert read_poses(tmp_path / "ok.npy").dtype == np.float64
+    (tmp_path / "text.npy").write_text("0 0 0")
+    with pytest.raises(TrajectoryError, match=r"text\.npy is not a NumPy \.npy file"):
+        read_poses(tmp_path / "text.npy")
+    with pytest.raises(TrajectoryError, match="not found"):
+        read_poses(tmp_path / "none.npy")
+
+
+def test_motion_range_skips_lifts_and_missing_poses_and_unwraps_angles():
+    """Summed over the lifts between touches and over the +-180 deg Euler wrap, a seed
+    scan's ry came to 646 deg over 140 frames in contact."""
+    angles = [0, 10, 5, 100, 170, -175, -170]  # deg about z; 170 -> -175 is a 15 deg turn
+    gt = np.stack([pose(rz(np.deg2rad(a)), (0, 0.001 * k, 0)) for k, a in enumerate(angles)])
+    m = motion_range(gt[4:])
+    assert m["rz_deg"] == pytest.approx(20.0) and m["y_mm"] == pytest.approx(2.0)
+    touches = np.array([True, True, True, False, True, True, True])  # frame 3 lifted
+    m = motion_range(gt, touches)
+    assert m["rz_deg"] == pytest.approx(15.0 + 20.0) and m["y_mm"] == pytest.approx(4.0)
+    gt[5] = np.nan  # no pose: the steps either side of it are not known
+    assert motion_range(gt, touches)["rz_deg"] == pytest.approx(15.0)
+    with pytest.raises(TrajectoryError, match="frames"):
+        motion_range(gt, touches[:-1])

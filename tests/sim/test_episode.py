@@ -12,6 +12,7 @@ from tactile_slam.sim.episode import (EpisodeError, ImplausibleMotionWarning, Si
                                       SyntheticBackgroundWarning,
                                       background_source, compose_images, load_background_image, read_episode,
                                       simulate_episode, synthetic_background)
+from tactile_slam.sim.objects import MeshSizeWarning
 from tactile_slam.sim.renderer import GelRenderer
 
 
@@ -193,3 +194,45 @@ def test_background_unreadable_or_wrong_size_is_refused(tmp_path):
     cv2.imwrite(str(tmp_path / "small.png"), np.zeros((120, 160, 3), np.uint8))
     with pytest.raises(EpisodeError, match="160x120, expected 320x240"):
         load_background_image(tmp_path / "small.png", (240, 320))
+
+
+def _sphere_file(path, radius):
+    import open3d as o3d
+
+    o3d.io.write_triangle_mesh(str(path), o3d.geometry.TriangleMesh.create_sphere(radius, resolution=30))
+    return path
+
+
+def test_an_episode_without_contact_is_refused_and_writes_nothing(tmp_path):
+    """A 1 mm user mesh gave an episode with no frame in contact, whose meta.yaml said
+    first_contact_frame 0: now it is refused, and the folder is left as it was."""
+    tiny = _sphere_file(tmp_path / "tiny.ply", 0.0005)
+    with pytest.warns(MeshSizeWarning), pytest.raises(EpisodeError, match=r"no frame of the 14-frame tracking "
+                                                                        r"episode is in contact.*1 mm across"):
+        simulate_episode(tmp_path / "new", SimulationSettings(object=str(tiny), frames=14))
+    assert not (tmp_path / "new").exists()
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "notes.txt").write_text("kept")
+    with pytest.warns(MeshSizeWarning), pytest.raises(EpisodeError, match="no frame"):
+        simulate_episode(old, SimulationSettings(object=str(tiny), frames=14))
+    assert [p.name for p in old.iterdir()] == ["notes.txt"]  # no gradients, no .part files
+    with pytest.warns(MeshSizeWarning):
+        assert main(["simulate", "--object", str(tiny), "--frames", "14", "--out", str(tmp_path / "cli")]) == 2
+
+
+def test_meta_records_the_size_and_scale_applied(episode, tmp_path):
+    """A catalogue object records its size and no scale, a mesh file its scale and no
+    size; a flag for the other kind of object is refused before anything is written."""
+    obj = yaml.safe_load((episode / "meta.yaml").read_text())["object"]
+    assert (obj["size_mm"], obj["mesh_scale"]) == (9.0, None) and obj["extent_mm"] == pytest.approx(9.0, abs=0.3)
+    in_mm = _sphere_file(tmp_path / "sphere_mm.ply", 6.0)
+    simulate_episode(tmp_path / "ep", SimulationSettings(object=str(in_mm), frames=14, mesh_scale=1e-3))
+    meta = yaml.safe_load((tmp_path / "ep" / "meta.yaml").read_text())
+    assert (meta["object"]["size_mm"], meta["object"]["mesh_scale"]) == (None, 1e-3)
+    assert meta["object"]["extent_mm"] == pytest.approx(12.0, rel=1e-3)
+    ep = read_episode(tmp_path / "ep")
+    assert ep.in_contact[meta["first_contact_frame"]] and meta["contact_frames"] == ep.in_contact.sum() > 0
+    for flags in (["--object", str(in_mm), "--size-mm", "30"], ["--object", "seed", "--mesh-scale", "1e-3"]):
+        assert main(["simulate", *flags, "--frames", "14", "--out", str(tmp_path / "flag")]) == 2
+        assert not (tmp_path / "flag").exists()

@@ -1,8 +1,11 @@
+import warnings
+
 import numpy as np
 import open3d as o3d
 import pytest
 
-from tactile_slam.sim.objects import OBJECTS, ObjectError, load_object, make_object, resolve_object
+from tactile_slam.sim.objects import (OBJECTS, MeshSizeWarning, ObjectError, extent_mm, load_object, make_object,
+                                      resolve_object)
 
 COARSE = 0.4  # mm; the topology and sizes do not depend on the resolution
 
@@ -97,3 +100,33 @@ def test_load_user_mesh_with_scale(tmp_path):
     bad.write_text("0 0 0\n")
     with pytest.raises(ObjectError, match="unsupported"):
         load_object(bad)
+
+
+def _sphere_file(path, radius):
+    o3d.io.write_triangle_mesh(str(path), o3d.geometry.TriangleMesh.create_sphere(radius, resolution=20))
+    return path
+
+
+def test_user_mesh_outside_tactile_sizes_warns_of_its_units(tmp_path):
+    """A 12 mm sphere saved in mm became a 12 m object without a word, and a 1 mm one an
+    episode without contact: both warn, naming the size and the scale to give."""
+    in_mm = _sphere_file(tmp_path / "sphere_mm.ply", 6.0)
+    with pytest.warns(MeshSizeWarning, match=r"1\.2e\+04 mm across.*--mesh-scale"):
+        mesh = load_object(in_mm)
+    assert extent_mm(mesh) == pytest.approx(12_000, rel=1e-3)
+    with pytest.warns(MeshSizeWarning, match=r"1 mm across.*outside the 2-200 mm"):
+        load_object(_sphere_file(tmp_path / "tiny.ply", 0.0005))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", MeshSizeWarning)  # in range once scaled: silent
+        assert extent_mm(load_object(in_mm, scale=1e-3)) == pytest.approx(12.0, rel=1e-3)
+
+
+def test_a_flag_for_the_other_kind_of_object_is_refused(tmp_path):
+    """--size-mm on a mesh file and --mesh-scale on a catalogue object were ignored while
+    meta.yaml recorded them as applied."""
+    path = _sphere_file(tmp_path / "sphere.ply", 0.006)
+    with pytest.raises(ObjectError, match=r"--size-mm\) applies to catalogue objects.*sphere\.ply"):
+        resolve_object(str(path), size_mm=30.0)
+    with pytest.raises(ObjectError, match=r"--mesh-scale\) applies to mesh files.*'seed'"):
+        resolve_object("seed", scale=1e-3)
+    assert extent_mm(resolve_object(str(path), scale=2.0)) == pytest.approx(24.0, rel=1e-3)
