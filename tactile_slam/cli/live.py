@@ -1,18 +1,24 @@
 """``tactile-slam live --out DIR [--camera SPEC]``: the online pipeline on a live sensor.
 
 Ctrl+C ends the run; everything computed so far is saved. The options shared with
-``tactile-slam run SCAN --online`` are defined here (:func:`add_online_arguments`).
+``tactile-slam run SCAN --online`` are defined here (:func:`add_online_arguments`), and
+so is how both print: with ``--jsonl -`` standard output carries the pose events' JSON
+lines only, and every message goes to standard error (:func:`message_stream`).
 """
 
 from __future__ import annotations
 
+import contextlib
+import sys
 from pathlib import Path
+from typing import TextIO
 
-from tactile_slam.cli.arguments import non_negative_float, output_file_or_stdout, output_folder, positive_int
+from tactile_slam.cli.arguments import (STDOUT, non_negative_float, output_file_or_stdout, output_folder,
+                                        positive_int)
 from tactile_slam.cli.devices import add_device_argument
 from tactile_slam.config import load_config
 from tactile_slam.io.dispatch import CAMERA_PREFIX, open_source
-from tactile_slam.pipeline.offline import METHODS
+from tactile_slam.pipeline.offline import METHODS, RunResult
 from tactile_slam.pipeline.online import OnlineOptions, OnlinePipeline
 from tactile_slam.pipeline.visualizer import KeyframePanels, NullVisualizer
 
@@ -59,6 +65,20 @@ def online_options(args) -> OnlineOptions:
         jsonl=args.jsonl, tracker_threads=args.threads, **given)
 
 
+def message_stream(args) -> TextIO:
+    """Where an online command's messages go: standard error when ``--jsonl -`` gives
+    standard output to the pose events, else standard output."""
+    return sys.stderr if args.jsonl == STDOUT else sys.stdout
+
+
+def run_online(pipeline: OnlinePipeline, messages: TextIO) -> RunResult:
+    """``pipeline.run()``, with whatever the run prints (an earlier run's outputs
+    replaced, a mesh skipped) sent to ``messages``; the pose stream keeps the standard
+    output it opened when the pipeline was built."""
+    with contextlib.redirect_stdout(messages):
+        return pipeline.run()
+
+
 def register(sub) -> None:
     p = sub.add_parser("live", help="track a live sensor with loop closure in parallel (Ctrl+C saves and stops)")
     p.add_argument("--out", required=True, type=output_folder, help="output folder")
@@ -77,22 +97,25 @@ def register(sub) -> None:
 def run(args) -> int:
     config = load_config(args.config)
     out = Path(args.out)
+    messages = message_stream(args)
     with open_source(f"{CAMERA_PREFIX}{args.camera}", config) as source:
         vis = KeyframePanels(out / "keyframes") if args.keyframe_panels else NullVisualizer()
-        result = OnlinePipeline(source, config, out, online_options(args), vis).run()
-    report(result.stats, out)
-    return 0
+        result = run_online(OnlinePipeline(source, config, out, online_options(args), vis), messages)
+    report(result.stats, out, messages)
+    return 0  # Ctrl+C is how a live run ends
 
 
-def report(s: dict, out: Path) -> None:
+def report(s: dict, out: Path, messages: TextIO) -> None:
+    """The online run's summary, a dead back end and the :func:`caveats`, to ``messages``."""
     lat = s["latency_ms"]
     print(f"online: {s['frames']} frames ({s['frames_dropped']} dropped), {s['keyframes']} keyframes "
           f"({s['keyframes_skipped_for_loops']} without loop detection), {s.get('loops', 0)} loops, "
-          f"latency median {lat['median']:.0f} ms / p95 {lat['p95']:.0f} ms, stopped by {s['stopped_by']} -> {out}")
+          f"latency median {lat['median']:.0f} ms / p95 {lat['p95']:.0f} ms, stopped by {s['stopped_by']} -> {out}",
+          file=messages)
     if s.get("backend_error"):
-        print(f"warning: {s['backend_error']}")
+        print(f"warning: {s['backend_error']}", file=messages)
     for line in caveats(s):
-        print(f"online: {line}")
+        print(f"online: {line}", file=messages)
 
 
 def caveats(s: dict) -> list[str]:

@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import torch
 
 from tactile_slam.cli.arguments import output_folder, positive_int
 from tactile_slam.cli.devices import add_device_argument
-from tactile_slam.cli.live import add_online_arguments, caveats, online_only_given, online_options, report
+from tactile_slam.cli.live import (add_online_arguments, caveats, message_stream, online_only_given, online_options,
+                                   report, run_online)
 from tactile_slam.config import load_config
 from tactile_slam.io.dispatch import open_source
 from tactile_slam.pipeline.offline import METHODS, OfflinePipeline, RunOptions
@@ -49,18 +51,21 @@ def run(args) -> int:
     out = Path(args.out)
     vis = KeyframePanels(out / "keyframes") if args.keyframe_panels else NullVisualizer()
     if args.online:
-        report(OnlinePipeline(source, config, out, online_options(args), vis).run().stats, out)
-        return 0
-    options = RunOptions(method=args.method, device=args.device, model=args.model,
-                         batch_size=args.batch_size, progress=not args.no_progress, mesh=not args.no_mesh)
-    result = OfflinePipeline(source, config, out, options, vis).run()
-    s = result.stats
-    loops = f", {s['loops']} loops, {s['groups']} groups" if "loops" in s else ""
-    print(f"run: {s['frames']} frames, {s['contact_frames']} in contact, {s['keyframes']} keyframes, "
-          f"{s['sessions']} sessions{loops}, {s['fps']:.1f} frames/s -> {out}")
-    for line in caveats(s):
-        print(f"run: {line}")
-    if not s["completed"]:  # only an interrupt returns here; other errors raise
-        print(f"run: interrupted ({s.get('error', 'KeyboardInterrupt')}); the outputs hold the frames before it")
+        messages = message_stream(args)
+        s = run_online(OnlinePipeline(source, config, out, online_options(args), vis), messages).stats
+        report(s, out, messages)
+    else:
+        messages = sys.stdout
+        options = RunOptions(method=args.method, device=args.device, model=args.model,
+                             batch_size=args.batch_size, progress=not args.no_progress, mesh=not args.no_mesh)
+        s = OfflinePipeline(source, config, out, options, vis).run().stats
+        loops = f", {s['loops']} loops, {s['groups']} groups" if "loops" in s else ""
+        print(f"run: {s['frames']} frames, {s['contact_frames']} in contact, {s['keyframes']} keyframes, "
+              f"{s['sessions']} sessions{loops}, {s['fps']:.1f} frames/s -> {out}")
+        for line in caveats(s):
+            print(f"run: {line}")
+    if not s["completed"]:  # only an interrupt returns here (Ctrl+C); other errors raise
+        print(f"run: interrupted ({s.get('error', 'KeyboardInterrupt')}); the outputs hold the frames before it",
+              file=messages)
         return 130
     return 0

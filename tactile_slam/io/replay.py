@@ -170,8 +170,24 @@ class RealtimeFeed:
 
 class LoopedSource(SequenceSource):
     """A recording played ``length`` frames long, starting over at its end (a soak
-    test from a short scan): frame ``k`` is ``source[k % len(source)]`` with index ``k``
-    and timestamp ``k / fps``.
+    test from a short scan).
+
+    Position ``k`` is pass ``p = k // n`` over ``source[k % n]`` (``n = len(source)``).
+    The first pass is the source itself: same video indices and timestamps (a scan's
+    start after its background window). Each later pass is shifted by the source's
+    index span ``s = last index - first index + 1`` (``n`` for a recording without
+    gaps): its frames have index ``source[k % n].index + p * s`` and timestamp
+    ``source[k % n].timestamp + p * s / fps``, so indices keep increasing with no
+    repeat and, without gaps, run on contiguously (a scan with 10 background frames
+    and 50 data frames gives indices 10-59, 60-109, ...; rows 0-9 of the outputs
+    are the background window, as for the scan).
+
+    Attributes:
+        background: the source's background (``(H, W, 3)`` float32 BGR), or ``None``
+            when it has none (the pipeline then takes it from the first frames).
+        background_check: the source's :class:`~tactile_slam.io.scan.BackgroundCheck`,
+            or ``None``.
+        span: the index shift ``s`` from one pass to the next.
 
     Raises:
         InputError: empty source or ``length < 1``.
@@ -182,10 +198,15 @@ class LoopedSource(SequenceSource):
             raise InputError(f"cannot loop {source.name} ({len(source)} frames) to {length} frames")
         self.source, self.length = source, int(length)
         self.fps, self.shape, self.name = source.fps, source.shape, f"{source.name} (looped to {length} frames)"
+        self.background = getattr(source, "background", None)
+        self.background_check = getattr(source, "background_check", None)
+        self.span = source[-1].index - source[0].index + 1
 
     def __len__(self) -> int:
         return self.length
 
     def frame(self, position: int) -> RawFrame:
-        f = self.source[position % len(self.source)]
-        return RawFrame(position, position / self.fps, f.bgr, f.gradients, f.contact)
+        loop, row = divmod(position, len(self.source))
+        f = self.source[row]
+        shift = loop * self.span
+        return RawFrame(f.index + shift, f.timestamp + shift / self.fps, f.bgr, f.gradients, f.contact)

@@ -7,6 +7,7 @@ outputs described in :mod:`tactile_slam.pipeline.outputs`.
 
 from __future__ import annotations
 
+import sys
 import time
 import warnings
 from dataclasses import dataclass, field, replace
@@ -26,13 +27,12 @@ from tactile_slam.io.frames import FrameSource
 from tactile_slam.io.scan import BackgroundCheck, BackgroundWarning, check_background, is_grey, mean_background
 from tactile_slam.pipeline.odometry import OdometryMap
 from tactile_slam.pipeline.outputs import (check_output_folder, clear_run_outputs, frame_poses, main_group,
-                                          main_group_poses, write_frames_csv, write_json)
+                                          main_group_poses, write_frames_csv, write_json, write_pose_graph_png)
 from tactile_slam.pipeline.visualizer import NullVisualizer
 from tactile_slam.recon import ReconError, TriMesh, reconstruct
 from tactile_slam.tracking.frame_to_frame import FrameToFrameTracker
 from tactile_slam.tracking.keyframe import Keyframe
 from tactile_slam.tracking.tracker import NormalFlowRegistrar, Tracker
-from tactile_slam.viz import pose_graph_figure
 
 # method -> loop-closure mode of the back end (None: no back end, odometry only)
 LOOP_MODES = {
@@ -141,7 +141,7 @@ class OfflinePipeline:
         self._outputs_cleared = True
         stale = clear_run_outputs(self.out_dir) if self.out_dir.is_dir() else []
         if stale:
-            print(f"{self.out_dir}: replaced the outputs of an earlier run ({', '.join(stale)})")
+            print(f"{self.out_dir}: replaced the outputs of an earlier run ({', '.join(stale)})", file=sys.stderr)
 
     # ------------------------------------------------------------------ set-up
     def _builder(self, first: FrameBatch, frames) -> tuple[FrameBuilder, FrameBatch | None]:
@@ -380,28 +380,11 @@ class OfflinePipeline:
                                      for g in others}
         return stats
 
-    def _plot_graph(self, backend: BackEnd) -> None:
-        """``pose_graph.png``: the largest group's keyframes, coverage keyframes and edges."""
-        group = dict(backend.group)
-        root = max(set(group.values()), key=lambda g: sum(1 for v in group.values() if v == g))
-        ids = [k for k in backend.keyframes if group[k] == root]
-        row = {k: i for i, k in enumerate(ids)}
-        poses = backend.graph.poses(ids).numpy()
-        active = set(backend.coverage.active)
-        kfs = backend.keyframes
-        odo = [(row[k - 1], row[k]) for k in ids
-               if k - 1 in row and not kfs[k].new_session and kfs[k - 1].session == kfs[k].session]
-        lps = [(row[lp.ref_id], row[lp.tar_id]) for lp in backend.loops if lp.ref_id in row and lp.tar_id in row]
-        pose_graph_figure(self.out_dir / "pose_graph.png", poses[:, :3, 3] * 1000.0,
-                          np.array([k in active for k in ids]), np.array(odo, dtype=int).reshape(-1, 2),
-                          np.array(lps, dtype=int).reshape(-1, 2),
-                          f"pose graph: {len(ids)} keyframes, {len(active & set(ids))} coverage, {len(lps)} loops")
-
     def _write_backend(self, backend: BackEnd) -> dict:
         """``loops.json``, ``loops_held.json``, ``pose_graph.g2o``, ``pose_graph.png`` and the back end's statistics."""
         backend.write(self.out_dir)
         if backend.graph.num_nodes:
-            self._plot_graph(backend)
+            write_pose_graph_png(self.out_dir / "pose_graph.png", backend)
         return backend.summary()
 
 

@@ -23,9 +23,9 @@ End of stream, :meth:`OnlinePipeline.stop`, Ctrl+C (``KeyboardInterrupt``) or a 
 worker never lose work: the tracker flushes its session tail, the worker (if alive)
 finishes its final solve, and every output of the offline pipeline is written for the
 frames seen so far (``poses.npy``, ``trajectory_tum.txt``, ``frames.csv``, ``keyframes.json``,
-``loops.json``, ``pose_graph.g2o``, the mesh), plus the online statistics in
+``loops.json``, ``pose_graph.g2o``, ``pose_graph.png``, the mesh), plus the online statistics in
 ``stats.json`` (``frames_dropped``, ``latency_ms``, ``keyframes_skipped_for_loops``,
-``backend_error``, ``stopped_by``). See ``docs/online.md``.
+``backend_error``, ``stopped_by``; after Ctrl+C ``error``, as offline). See ``docs/online.md``.
 """
 
 from __future__ import annotations
@@ -54,7 +54,7 @@ from tactile_slam.io.dataset import collate
 from tactile_slam.io.frames import FrameSource
 from tactile_slam.io.replay import RealtimeFeed
 from tactile_slam.pipeline.offline import LOOP_MODES, OfflinePipeline, RunOptions, RunResult, tracker_counts
-from tactile_slam.pipeline.outputs import write_json
+from tactile_slam.pipeline.outputs import write_json, write_pose_graph_png
 from tactile_slam.pipeline.stream import PoseEvent, PoseStream
 from tactile_slam.pipeline.visualizer import NullVisualizer
 from tactile_slam.tracking.keyframe import Keyframe
@@ -254,8 +254,8 @@ def backend_worker(config: Config, loop_mode: str, inbox, outbox, skip_loops: bo
 
     Messages in: ``("kf", PackedKeyframe)``, ``("finish",)``. Out: ``("ready", pid)``,
     ``("update", PoseUpdate)`` per batch, ``("final", PoseUpdate, stats)`` after the
-    final solve (``loops.json`` and ``pose_graph.g2o`` written to ``out_dir``), or
-    ``("error", traceback)``.
+    final solve (``loops.json``, ``loops_held.json``, ``pose_graph.g2o`` and
+    ``pose_graph.png`` written to ``out_dir``), or ``("error", traceback)``.
     """
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl+C is the tracker's to handle
     torch.set_num_threads(threads)
@@ -300,6 +300,7 @@ def backend_worker(config: Config, loop_mode: str, inbox, outbox, skip_loops: bo
         stats = backend.summary()
         if backend.keyframes:
             backend.write(out)
+            write_pose_graph_png(out / "pose_graph.png", backend)
         outbox.put(("final", _update(backend, skipped, []), stats))
     except BaseException:  # reported to the tracker, which carries on without us
         outbox.put(("error", traceback.format_exc()))
@@ -545,7 +546,7 @@ class OnlinePipeline(OfflinePipeline):
                 keyframes.append(kf)
                 self.visualizer.on_keyframe(kf)
 
-        stopped_by, error = "end_of_stream", None
+        stopped_by, error, interrupt = "end_of_stream", None, None
         tracker = None
         t_start = time.perf_counter()
         try:
@@ -567,17 +568,19 @@ class OnlinePipeline(OfflinePipeline):
                     t_geom.append(t1 - t0)
                     t_track.append(t2 - t1)
                     emit(step.keyframes)
-                    self._publish(step, frame, kmap, state, feed, arrival_of, latency)
+                    # the frame's row before its event: a Ctrl+C while publishing (a callback, the JSON
+                    # line) keeps the frame, which the tracker's final flush may make a keyframe
                     indices.append(step.index)
                     kf_of.append(step.keyframe_id if step.in_contact else -1)
                     kf_T.append(step.kf_T_frame.numpy() if step.kf_T_frame is not None else np.full((4, 4), np.nan))
                     quality.append((step.ccs, step.scr, step.conditioning))
+                    self._publish(step, frame, kmap, state, feed, arrival_of, latency)
                     self.visualizer.on_frame(frame, step)
                     bar.update(1)
             finally:
                 emit(tracker.finish())  # the session tail is saved however the stream ends
-        except KeyboardInterrupt:
-            stopped_by = "interrupted"
+        except KeyboardInterrupt as exc:
+            stopped_by, interrupt = "interrupted", exc
         except (InputError, ValueError, RuntimeError) as exc:
             stopped_by, error = "error", exc
         finally:
@@ -597,7 +600,10 @@ class OnlinePipeline(OfflinePipeline):
                              error, tracker_counts(tracker))
         result.stats.update(final_stats)
         result.stats.update(self._online_stats(feed, latency, keyframes, state, stopped_by))
-        result.stats["completed"] = stopped_by == "end_of_stream"
+        # an interrupt while writing (the back end's files, the mesh) also leaves it unfinished
+        result.stats["completed"] = result.stats["completed"] and stopped_by == "end_of_stream"
+        if interrupt is not None:  # as offline; the outputs, mesh included, were written all the same
+            result.stats["error"] = f"{type(interrupt).__name__}: {interrupt}"
         write_json(self.out_dir / "stats.json", result.stats)
         self.visualizer.close()
         if error is not None:
@@ -615,6 +621,7 @@ class OnlinePipeline(OfflinePipeline):
             event.is_keyframe, event.ccs, event.scr = step.is_keyframe, step.ccs, step.scr
             event.conditioning = step.conditioning
             event.loop_corrected, state["corrected"] = state["corrected"], False
+        event.new_keyframes = [kf.video_index for kf in step.keyframes]
         arrived = arrival_of.pop(step.index, None)
         if arrived is not None:
             event.latency_ms = (feed.clock() - arrived) * 1000.0

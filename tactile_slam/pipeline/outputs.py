@@ -13,6 +13,7 @@ Output folder (stable names; see ``docs/outputs.md``):
 * ``frames.csv``: one row per video frame: its group, session and keyframe, whether it
   became a keyframe, and the quality of its registration (CCS, SCR, conditioning).
 * ``keyframes.json``, ``stats.json``, ``config.yaml``.
+* ``pose_graph.png`` (:func:`write_pose_graph_png`): the back end's largest group from above.
 
 A new run into a folder removes every :data:`RUN_OUTPUTS` file and :data:`RUN_OUTPUT_DIRS`
 folder of an earlier one (:func:`clear_run_outputs`), so none is read as the new run's.
@@ -28,10 +29,15 @@ import json
 import os
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
+
+from tactile_slam.viz import pose_graph_figure
+
+if TYPE_CHECKING:
+    from tactile_slam.backend import BackEnd
 
 
 # what a run (and `tactile-slam eval` or `demo` of it) writes into its folder
@@ -39,7 +45,7 @@ RUN_OUTPUTS = ("poses.npy", "poses_by_group.npy", "frame_group.npy", "trajectory
                "keyframes.json", "stats.json", "config.yaml", "loops.json", "loops_held.json", "pose_graph.g2o",
                "pose_graph.png", "mesh_fused.ply", "mesh.ply", "mesh.png", "metrics.json", "tracking_error.png",
                "report.png")
-RUN_OUTPUT_DIRS = ("groups",)
+RUN_OUTPUT_DIRS = ("groups", "preview")
 
 
 def clear_run_outputs(out: Path) -> list[str]:
@@ -111,6 +117,25 @@ def main_group_poses(poses_by_group: np.ndarray, frame_group: np.ndarray) -> np.
         sel = frame_group == label
         out[sel] = poses_by_group[sel]
     return out
+
+
+def write_pose_graph_png(path: Path, backend: "BackEnd") -> None:
+    """A top view of the back end's largest group (most keyframes): its keyframes,
+    coverage keyframes, odometry and loop edges, positions in mm in the group's start
+    frame. The back end must hold at least one keyframe."""
+    group = dict(backend.group)
+    root = max(set(group.values()), key=lambda g: sum(1 for v in group.values() if v == g))
+    ids = [k for k in backend.keyframes if group[k] == root]
+    row = {k: i for i, k in enumerate(ids)}
+    poses = backend.graph.poses(ids).numpy()
+    active = set(backend.coverage.active)
+    kfs = backend.keyframes
+    odo = [(row[k - 1], row[k]) for k in ids
+           if k - 1 in row and not kfs[k].new_session and kfs[k - 1].session == kfs[k].session]
+    lps = [(row[lp.ref_id], row[lp.tar_id]) for lp in backend.loops if lp.ref_id in row and lp.tar_id in row]
+    pose_graph_figure(path, poses[:, :3, 3] * 1000.0, np.array([k in active for k in ids]),
+                      np.array(odo, dtype=int).reshape(-1, 2), np.array(lps, dtype=int).reshape(-1, 2),
+                      f"pose graph: {len(ids)} keyframes, {len(active & set(ids))} coverage, {len(lps)} loops")
 
 
 def write_json(path: Path, data: Any) -> None:

@@ -26,7 +26,7 @@ import sys
 import threading
 from collections import deque
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TextIO
 
@@ -45,7 +45,18 @@ class PoseEvent:
         sensor_T_object: ``(4, 4)`` float64 metres, object (map) pose in the sensor frame.
         keyframe_id / session / group: the frame's keyframe, tracking session and map
             group (``-1`` without contact).
-        is_keyframe: the frame itself became a keyframe.
+        is_keyframe: the frame became a keyframe when it was tracked: true only for a
+            session head (the first frame of a touch, or a frame at which registration
+            broke). Most keyframes are made one frame late, by the lazy keyframe rule:
+            when a frame's registration against the current keyframe fails or is
+            refused (speed, tilt or cross-check limits), the *previous* frame becomes
+            one, and its own event, already published, keeps ``False``.
+        new_keyframes: video indices of the keyframes made while tracking this frame, in
+            id order: this frame's own index for a session head, the previous frame's
+            when the lazy rule (or, at a contact loss, the flush of the session's tail)
+            made it one ("previous": the previous frame delivered, dropped frames aside).
+            Over all events these are the keyframes of ``keyframes.json``, except a tail
+            flushed when the run ends (end of stream, stop, Ctrl+C): no event follows it.
         ccs / scr: registration quality (NaN for a session head or without contact).
         conditioning: the registration's conditioning (``TrackStep.conditioning``): small
             where the contact leaves a motion weakly constrained; NaN where ``ccs`` is.
@@ -63,6 +74,7 @@ class PoseEvent:
     session: int = -1
     group: int = -1
     is_keyframe: bool = False
+    new_keyframes: list[int] = field(default_factory=list)
     ccs: float = float("nan")
     scr: float = float("nan")
     conditioning: float = float("nan")
@@ -87,7 +99,9 @@ class PoseStream:
 
     Args:
         maxlen: events kept for a blocking consumer (older ones are dropped and counted).
-        jsonl: write every event as a JSON line to this path, or ``"-"`` for stdout.
+        jsonl: write every event as a JSON line to this path, or ``"-"`` for the standard
+            output in force when the stream is built (kept, and never closed, also when
+            ``sys.stdout`` is redirected later).
     """
 
     def __init__(self, maxlen: int = 64, jsonl: str | Path | None = None):
@@ -105,8 +119,9 @@ class PoseStream:
         self._dispatcher: threading.Thread | None = None
         self.callback_errors: list[str] = []
         self._jsonl: TextIO | None = None
+        self._owns_jsonl = jsonl is not None and str(jsonl) != "-"  # standard output is not ours to close
         if jsonl is not None:
-            self._jsonl = sys.stdout if str(jsonl) == "-" else open(jsonl, "w")  # noqa: SIM115
+            self._jsonl = open(jsonl, "w") if self._owns_jsonl else sys.stdout  # noqa: SIM115
             self._start_dispatcher()
 
     # ------------------------------------------------------------------ producer
@@ -134,7 +149,7 @@ class PoseStream:
                 self._dispatch_cond.notify()
             self._dispatcher.join()
             self._dispatcher = None
-        if self._jsonl is not None and self._jsonl is not sys.stdout:
+        if self._owns_jsonl and self._jsonl is not None:
             self._jsonl.close()
         self._jsonl = None
 

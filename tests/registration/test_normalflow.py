@@ -528,7 +528,7 @@ class TestFailures:
     def test_no_valid_height_sample_gives_failure_not_nan(self, scene):
         ref, tars, _, _ = scene
         tar = replace(tars[:1], contact=torch.zeros_like(tars[:1].contact))
-        res = register(ref, tar, None, NormalFlowConfig(min_shared=0))
+        res = register(ref, tar, None, NormalFlowConfig(min_shared=1))
         assert not bool(res.ok[0])
         assert float(res.tar_T_ref[0, 2, 3]) == 0.0 and bool(torch.isfinite(res.tar_T_ref).all())
 
