@@ -39,3 +39,9 @@ def restore_torch_threads():
     before = torch.get_num_threads()
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture
+def one_thread():
+    """One torch thread for the test (put back afterwards by :func:`restore_torch_threads`)."""
+    torch.set_num_threads(1)

@@ -106,11 +106,5 @@ def reference_model(mini_data):
 
 
 @pytest.fixture(autouse=True)
-def single_thread():
+def single_thread(one_thread):
     """The calibration MLPs are tiny: one thread is faster, and immune to a busy machine."""
-    import torch
-
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)

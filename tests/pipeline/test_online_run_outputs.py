@@ -9,7 +9,6 @@ import json
 
 import numpy as np
 import pytest
-import torch
 
 from tactile_slam.cli.main import main
 from tactile_slam.config import Config
@@ -19,6 +18,8 @@ from tactile_slam.pipeline.outputs import clear_run_outputs
 from tactile_slam.pipeline.stream import PoseStream
 from tactile_slam.sim.episode import SimulationSettings, simulate_episode
 
+pytestmark = pytest.mark.usefixtures("one_thread")
+
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 
@@ -26,14 +27,6 @@ PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 def episode(tmp_path_factory):
     out = tmp_path_factory.mktemp("ep_online_outputs")
     return simulate_episode(out, SimulationSettings(object="seed", kind="contact_loss", frames=150, seed=1))
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
 
 
 def online(ep, out, stream=None, **kw):
