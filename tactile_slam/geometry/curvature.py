@@ -74,6 +74,10 @@ def _blurred_in_contact(field, finish, gradients: torch.Tensor, contact: torch.T
     plus a central difference's), so a frame reads the same alone or in a batch, to the
     rounding of the dtype (float32 sums in another window order differ by ~1e-8).
     ``field``: ``(b, h, w, 2)`` -> ``(b, h, w)``."""
+    h, w = gradients.shape[1:3]
+    if min(h, w) < max(ksize // 2 + 1, 2):  # central differences need 2 px, the reflected blur ksize // 2 + 1
+        raise ValueError(f"a {h}x{w} image is too small for curvature with a {ksize}-px blur "
+                         f"(at least {max(ksize // 2 + 1, 2)} px each way)")
     out = torch.zeros(gradients.shape[:3], dtype=gradients.dtype, device=gradients.device)
     box = mask_bounds(contact.any(0))  # of every frame's contact
     if box is None:

@@ -151,3 +151,19 @@ class TestGaussianCurvature:
             torch.testing.assert_close(got, want[i:i + 1], rtol=0, atol=tol)
             assert (got[~m[i:i + 1]] == 0).all()
         assert gaussian_curvature(g, m, ksize).shape == (3, 40, 56)
+
+
+@pytest.mark.parametrize("shape,ksize", [((1, 8), 5), ((8, 1), 1), ((2, 2), 5), ((4, 4), 9)])
+def test_images_too_small_for_the_blur_are_refused(shape, ksize):
+    """Before: torch.gradient's or kornia's padding error from deep inside."""
+    g = torch.zeros(1, *shape, 2)
+    c = torch.ones(1, *shape, dtype=torch.bool)
+    for fn in (curvature, gaussian_curvature):
+        with pytest.raises(ValueError, match=f"image is too small for curvature with a {ksize}-px blur"):
+            fn(g, c, ksize=ksize)
+
+
+def test_the_smallest_images_the_blur_allows_work():
+    g = torch.zeros(1, 3, 3, 2)
+    c = torch.ones(1, 3, 3, dtype=torch.bool)
+    assert (curvature(g, c, ksize=5) == 0).all() and (gaussian_curvature(g, c, ksize=5) == 0).all()
