@@ -107,6 +107,12 @@ class SensorConfig:
         return Path(self.model_path)
 
 
+def min_image_px(blur_ksize: int) -> int:
+    """Smallest image side curvature works on: 2 px for central differences, and more than
+    half the blur kernel for its reflected border (:mod:`tactile_slam.geometry.curvature`)."""
+    return max(blur_ksize // 2 + 1, 2)
+
+
 def lower_limit(general: float | None, decoded_only: float | None, decoded: bool) -> float | None:
     """The limit that holds for a frame: ``general``, and for a frame decoded from an image
     also ``decoded_only``, the lower where both apply; None where neither does (the slope
@@ -175,6 +181,8 @@ MERGE_DISTINCT = ("queries", "both")
 """``LoopConfig.merge_distinct`` values: the loop gate's rules for independent support."""
 ROBUST_MODES = ("none", "huber", "cauchy", "gnc")
 """``PoseGraphConfig.robust`` values."""
+FACTOR_KEYS = ("normalflow.coarse_factors", "normalflow.fallback_factors", "tracking.fallback_factors")
+"""Block-averaging factors, which must divide the image size (:meth:`Config.check_factors`)."""
 JACOBIAN_KINDS = ("analytic", "autograd")
 """``NormalFlowConfig.jacobian`` values (``registration.jacobian``'s closed form and torch.func)."""
 SAMPLE_SELECTIONS = ("spread", "topk", "threshold", "random")
@@ -587,7 +595,7 @@ class Config:
             self, dict_factory=lambda kv: {k: list(v) if isinstance(v, tuple) else v for k, v in kv})
 
     def save(self, path: str | Path) -> None:
-        Path(path).write_text(yaml.safe_dump(self.to_dict(), sort_keys=False))
+        Path(path).write_text(yaml.dump(self.to_dict(), Dumper=_YamlDumper, sort_keys=False))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any], base_dir: Path | None = None) -> "Config":
@@ -637,9 +645,10 @@ class Config:
             raise ConfigError("sensor.background_frames must be >= 1")
         if self.curvature.blur_ksize % 2 != 1:
             raise ConfigError("curvature.blur_ksize must be odd")
-        if min(s.width, s.height) < max(self.curvature.blur_ksize, 2):
-            raise ConfigError(f"sensor size {s.width}x{s.height} is smaller than the curvature blur "
-                              f"(curvature.blur_ksize {self.curvature.blur_ksize})")
+        if min(s.width, s.height) < min_image_px(self.curvature.blur_ksize):
+            raise ConfigError(f"sensor size {s.width}x{s.height} is too small for the curvature blur "
+                              f"(curvature.blur_ksize {self.curvature.blur_ksize}: at least "
+                              f"{min_image_px(self.curvature.blur_ksize)} px each way)")
         for key, values in _CHOICES:
             section, name = key.split(".")
             value = getattr(getattr(self, section), name)
@@ -648,13 +657,23 @@ class Config:
         self.normalflow.check()  # the factors are checked against the frames' size when they register
         for section in ("contact", "curvature", "tracking", "loop", "posegraph", "recon"):
             check_ranges(getattr(self, section), section)
-        for key in ("normalflow.coarse_factors", "normalflow.fallback_factors", "tracking.fallback_factors"):
+        for key in FACTOR_KEYS:
             section, name = key.split(".")
-            bad = [f for f in getattr(getattr(self, section), name) if f < 2 or s.width % f or s.height % f]
-            if bad:
-                raise ConfigError(f"{key} must be integers >= 2 that divide the sensor size {s.width}x{s.height}, "
-                                  f"got {bad[0]}")
+            if any(f < 2 for f in getattr(getattr(self, section), name)):
+                raise ConfigError(f"{key} must be integers >= 2, got {list(getattr(getattr(self, section), name))}")
         self.recon.check()
+
+    def check_factors(self) -> None:
+        """Raise :class:`ConfigError` unless every block-averaging factor
+        (:data:`FACTOR_KEYS`) divides the sensor size; the pipelines check this before
+        tracking (calibration, which never tracks, needs no such size)."""
+        s = self.sensor
+        for key in FACTOR_KEYS:
+            section, name = key.split(".")
+            bad = [f for f in getattr(getattr(self, section), name) if s.width % f or s.height % f]
+            if bad:
+                raise ConfigError(f"{key} must divide the sensor size {s.width}x{s.height}, got {bad[0]} "
+                                  f"(an empty list, {key}: [], turns those levels off)")
 
 
 class _YamlLoader(yaml.SafeLoader):
@@ -662,8 +681,14 @@ class _YamlLoader(yaml.SafeLoader):
     as YAML 1.2 does; PyYAML's YAML 1.1 rules read them as strings."""
 
 
-_YamlLoader.add_implicit_resolver(
-    "tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"), list("-+0123456789"))
+class _YamlDumper(yaml.SafeDumper):
+    """PyYAML's safe dumper that quotes strings :class:`_YamlLoader` would read as floats
+    (a sensor named ``3E8``), so a saved config loads back as it was."""
+
+
+for _cls in (_YamlLoader, _YamlDumper):
+    _cls.add_implicit_resolver("tag:yaml.org,2002:float", re.compile(r"^[-+]?[0-9][0-9_]*(?:\.[0-9_]*)?[eE][-+]?[0-9]+$"),
+                               list("-+0123456789"))
 
 
 def _rule(low: float | None = None, high: float | None = None, open_low: bool = False,
@@ -731,15 +756,18 @@ _CHOICES = (
 ``normalflow``'s by :meth:`NormalFlowConfig.check`)."""
 
 
+_RANGES_BY_SECTION: dict[str, list[tuple[str, str, Any, str]]] = {}
+for _key, _ok, _text in _RANGES:
+    _RANGES_BY_SECTION.setdefault(_key.split(".")[0], []).append((_key, _key.split(".")[1], _ok, _text))
+
+
 def check_ranges(settings: Any, section: str) -> None:
     """Raise :class:`ConfigError` naming the first setting of ``section`` (a config
     dataclass) outside its range in :data:`_RANGES`."""
-    for key, rule, text in _RANGES:
-        where, name = key.split(".")
-        if where == section:
-            value = getattr(settings, name)
-            if value is not None and not rule(value):
-                raise ConfigError(f"{key} must be {text}, got {value!r}")
+    for key, name, rule, text in _RANGES_BY_SECTION.get(section, ()):
+        value = getattr(settings, name)
+        if value is not None and not rule(value):
+            raise ConfigError(f"{key} must be {text}, got {value!r}")
 
 
 def _update(obj: Any, values: dict[str, Any], section: str) -> Any:

@@ -119,7 +119,10 @@ def run_source(run_dir: Path) -> str | None:
 
 
 def reads_from(source: str, episode_dir: Path) -> bool:
-    """Whether ``source`` is the episode folder or a file inside it (symlinks resolved)."""
+    """Whether ``source`` is the episode folder or a file inside it (symlinks resolved). A
+    source that is not an absolute path (a camera, a looped replay) never is."""
+    if not Path(source).is_absolute():
+        return False
     src, ep = Path(source).resolve(), Path(episode_dir).resolve()
     return src == ep or ep in src.parents
 

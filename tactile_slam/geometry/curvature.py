@@ -7,6 +7,7 @@ from functools import lru_cache
 import kornia
 import torch
 
+from tactile_slam.config import min_image_px
 from tactile_slam.geometry.morphology import as_weights, mask_bounds, window_around
 
 
@@ -75,9 +76,9 @@ def _blurred_in_contact(field, finish, gradients: torch.Tensor, contact: torch.T
     rounding of the dtype (float32 sums in another window order differ by ~1e-8).
     ``field``: ``(b, h, w, 2)`` -> ``(b, h, w)``."""
     h, w = gradients.shape[1:3]
-    if min(h, w) < max(ksize // 2 + 1, 2):  # central differences need 2 px, the reflected blur ksize // 2 + 1
+    if min(h, w) < min_image_px(ksize):
         raise ValueError(f"a {h}x{w} image is too small for curvature with a {ksize}-px blur "
-                         f"(at least {max(ksize // 2 + 1, 2)} px each way)")
+                         f"(at least {min_image_px(ksize)} px each way)")
     out = torch.zeros(gradients.shape[:3], dtype=gradients.dtype, device=gradients.device)
     box = mask_bounds(contact.any(0))  # of every frame's contact
     if box is None:

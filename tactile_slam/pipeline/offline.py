@@ -122,6 +122,7 @@ class OfflinePipeline:
     def __init__(self, source: FrameSource, config: Config, out_dir: str | Path,
                  options: RunOptions | None = None, visualizer: NullVisualizer | None = None):
         config.validate()  # a Config changed in Python skips the YAML loader's checks
+        config.check_factors()  # tracking's block-averaged levels need a size they divide
         self.source = source
         self.config = config
         self.out_dir = check_output_folder(out_dir)
@@ -132,6 +133,7 @@ class OfflinePipeline:
         self.visualizer = visualizer or NullVisualizer()
         self._outputs_cleared = False
         self._window_check: BackgroundCheck | None = None  # of a stream's background window
+        self._model: str | None = None  # the calibration model images were decoded with
 
     def _clear_outputs(self) -> None:
         """Remove an earlier run's outputs from the output folder (:func:`clear_run_outputs`),
@@ -177,8 +179,9 @@ class OfflinePipeline:
                 f"no calibration model for sensor {self.config.sensor.name!r}: pass --model or set sensor.model_path"
             )
         model, meta = load_model(path, self.options.device)
-        # config.yaml names the model this run decoded with, so it reproduces the run (also with --model)
-        self.config = replace(self.config, sensor=replace(self.config.sensor, model_path=str(Path(path).resolve())))
+        self._model = str(Path(path).resolve())
+        if self.options.model:  # config.yaml then names it, so --config config.yaml repeats the run
+            self.config = replace(self.config, sensor=replace(self.config.sensor, model_path=self._model))
         mismatch = model_sensor_mismatch(meta, self.config.sensor)
         if mismatch is not None:
             warnings.warn(f"{path}: {mismatch}; its gradients will be wrong (calibrate this sensor: "
@@ -318,6 +321,7 @@ class OfflinePipeline:
         name = str(getattr(self.source, "name", self.source))
         stats = {
             "source": str(Path(name).resolve()) if Path(name).exists() else name,  # what eval checks the run against
+            "model": self._model,
             "method": self.options.method,
             "device": self.options.device,
             "frames": n,

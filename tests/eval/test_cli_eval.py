@@ -132,7 +132,7 @@ def _run_of(episode, run):
     return run
 
 
-def test_eval_warns_when_the_run_read_another_episode(episode, tmp_path):
+def test_eval_warns_when_the_run_read_another_episode(episode, tmp_path, monkeypatch):
     """eval scored a run against any episode of the same length; the run's stats.json
     now names its source, and one outside the episode folder is warned of (and scored)."""
     import warnings
@@ -144,6 +144,10 @@ def test_eval_warns_when_the_run_read_another_episode(episode, tmp_path):
         assert main(["eval", str(run), "--gt", str(episode), "--no-recon"]) == 0
     assert other in str(record[0].message) and str(episode.resolve()) in str(record[0].message)
     assert (run / "metrics.json").is_file()
+    (run / "stats.json").write_text(json.dumps({"source": "camera 0"}))  # not a path: never the episode,
+    monkeypatch.chdir(episode)  # even where it would resolve inside the episode folder
+    with pytest.warns(SourceMismatchWarning):
+        assert main(["eval", str(run), "--gt", ".", "--no-recon"]) == 0
     for stats in ({"source": str(episode / "gt_gradients.npz")}, {"source": str(episode)}, {"frames": 30}):
         (run / "stats.json").write_text(json.dumps(stats))
         with warnings.catch_warnings():

@@ -516,6 +516,7 @@ def test_config_yaml_names_the_model_a_run_decoded_with(tmp_path, capsys):
                  "--no-mesh"]) == 0
     written = Config.from_yaml(tmp_path / "a" / "config.yaml")
     assert written.sensor.model_path == str(model.resolve())
+    assert json.loads((tmp_path / "a" / "stats.json").read_text())["model"] == str(model.resolve())
     model.rename(tmp_path / "models" / "moved.pt")  # the re-run must read the file the config names
     assert main(["run", str(episode), "--out", str(tmp_path / "b"), "--config", str(tmp_path / "a" / "config.yaml"),
                  "--method", "nf-kf", "--no-mesh"]) == 2
